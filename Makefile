@@ -1,0 +1,31 @@
+# Two entry points for a fresh machine (see README):
+#   make demo   -- create .venv, install, run the demo
+#   make test   -- create .venv, install, run the whole test suite
+PYTHON ?= python3
+VENV   := .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-dev
+
+.PHONY: demo test lint bench venv clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/psm demo --out out/demo
+
+test: $(STAMP)
+	$(VENV)/bin/ruff check psm services tests benchmarks scripts
+	$(PY) -m pytest -q -p no:cacheprovider
+
+bench: $(STAMP)
+	$(PY) -m benchmarks.learner
+	$(PY) -m benchmarks.bus
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .ruff_cache

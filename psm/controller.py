@@ -1,0 +1,303 @@
+"""The online PSM controller: phase-space state in, Cartesian (or any-space) acceleration out.
+
+Per dimension it runs the chain of PSTFs learned by :class:`psm.PhaseSpaceModel`, re-solving the
+current segment from the measured state at every tick, which is what makes the model robust to
+pushes, moved starts and moving goals (paper §III-C..F, DESIGN §4):
+
+* **segment law** (eq. 7 with the corrected eq. 5): towards the next via-point ``(x_n, v_n)`` the
+  acceleration is ``c₀ − k Δ/2`` with ``Δ = x_n − x``, ``c₀ = (v_n² − v²)/(2Δ)``; the learned ``k`` is
+  clamped to ``k_max(v, v_n, Δ) − κ`` so a perturbed state never makes the segment unstable;
+* **wrong direction** (eq. 10): a velocity pointing away from ``x_n`` gets a constant acceleration
+  ``m`` towards it until it is zero;
+* **synchronisation** (eq. 14): a dimension whose time to completion ``t_e`` is below the largest one
+  ``t_E`` is braked with ``−T v (t_E − t_e)``;
+* **collision stop** (eq. 15): a per-dimension request "stop at x_ob" decelerates with
+  ``−v²/(2(x_ob − x))`` while the obstacle lies between the state and the via-point;
+* **terminal capture**: within one tick of the goal a critically damped spring holds the goal.
+
+Via-points are stored relative to the goal, so :meth:`PSMController.set_goal` moves all of them at
+once; the current segment index only moves forward (progress), skipping via-points the state has
+already passed. The hot path is plain ``math`` on floats: one ``step`` costs a few microseconds
+per dimension.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from psm.errors import ParameterError, ShapeError
+from psm.pstf import k_limit, time_to_reach
+
+#: Controller modes of one dimension (reported by :attr:`PSMController.modes`).
+MODE_SEGMENT = "segment"
+MODE_WRONG_WAY = "wrong_way"
+MODE_STOP = "collision_stop"
+MODE_TERMINAL = "terminal"
+
+
+@dataclass(frozen=True)
+class DimensionChain:
+    """One dimension's PSTF chain in goal-relative coordinates (what the controller runs).
+
+    ``offsets (N+1,)`` via-point positions minus the goal [unit] (last is 0), ``velocities (N+1,)``
+    [unit/s] (last is 0), ``k (N,)`` [1/s²], ``kappa (N,)`` [1/s²], ``durations (N,)`` [s].
+    """
+
+    offsets: tuple[float, ...]
+    velocities: tuple[float, ...]
+    k: tuple[float, ...]
+    kappa: tuple[float, ...]
+    durations: tuple[float, ...]
+    hold: bool
+
+
+class PSMController:
+    """Stateful online controller for one motion; create it with ``model.controller(goal)``.
+
+    ``a = ctrl.step(x, v, dt)`` takes the measured position ``x (D,)`` [unit] and velocity
+    ``v (D,)`` [unit/s] and returns the commanded acceleration ``(D,)`` [unit/s²] for the next ``dt``
+    [s]. ``ctrl.set_goal(g)`` moves the goal at any time (velocity stays continuous);
+    ``ctrl.time_to_go`` is each dimension's ``t_e`` [s]; ``ctrl.done`` is true once every dimension
+    holds the goal within the model's tolerances.
+    """
+
+    def __init__(
+        self,
+        chains: list[DimensionChain],
+        goal: ArrayLike,
+        wrong_way_accel: NDArray[np.float64],
+        sync_gain: float,
+        position_tolerance: float,
+        velocity_tolerance: float,
+        terminal_omega: float | None = None,
+    ) -> None:
+        self._D = len(chains)
+        self._chains = chains
+        self._n = [len(c.k) for c in chains]
+        # tail[d][j]: nominal duration of the segments after segment j.
+        self._tail = [
+            [float(sum(c.durations[j + 1 :])) for j in range(len(c.k))] for c in chains
+        ]
+        self._dir = [
+            [math.copysign(1.0, c.offsets[j + 1] - c.offsets[j]) for j in range(len(c.k))]
+            for c in chains
+        ]
+        self._m = [float(m) for m in wrong_way_accel]
+        self._sync_gain = float(sync_gain)
+        self._pos_tol = float(position_tolerance)
+        self._vel_tol = float(velocity_tolerance)
+        self._terminal_omega = terminal_omega
+        self._goal = [0.0] * self._D
+        self.set_goal(goal)
+        self._segment = [0] * self._D
+        self._terminal = [False] * self._D
+        self._k_cap = [math.inf] * self._D
+        self._stops: list[float | None] = [None] * self._D
+        self._t_e = [float(sum(c.durations)) for c in chains]
+        self._modes = [MODE_SEGMENT] * self._D
+        self._done = False
+
+    # ------------------------------------------------------------------ public state
+    @property
+    def dim(self) -> int:
+        """Number of dimensions D."""
+        return self._D
+
+    @property
+    def goal(self) -> NDArray[np.float64]:
+        """Current goal ``(D,)`` [unit]."""
+        return np.array(self._goal)
+
+    @property
+    def segment(self) -> NDArray[np.int64]:
+        """Index of the segment each dimension is in ``(D,)``."""
+        return np.array(self._segment, dtype=np.int64)
+
+    @property
+    def time_to_go(self) -> NDArray[np.float64]:
+        """Each dimension's time to completion ``t_e`` (eq. 13) ``(D,)`` [s], as of the last step."""
+        return np.array(self._t_e)
+
+    @property
+    def modes(self) -> list[str]:
+        """Each dimension's mode in the last step (segment, wrong_way, collision_stop, terminal)."""
+        return list(self._modes)
+
+    @property
+    def done(self) -> bool:
+        """True once every dimension holds the goal (within position/velocity tolerance)."""
+        return self._done
+
+    # ------------------------------------------------------------------ commands
+    def set_goal(self, goal: ArrayLike) -> None:
+        """Move the goal ``(D,)`` [unit]; via-points move with it. Takes effect at the next step."""
+        g = np.asarray(goal, dtype=float).ravel()
+        if g.shape != (self._D,):
+            raise ShapeError(f"goal must have shape ({self._D},), got {np.shape(goal)}")
+        if not np.all(np.isfinite(g)):
+            raise ShapeError("goal must be finite")
+        self._goal = [float(e) for e in g]
+        if hasattr(self, "_terminal"):
+            self._terminal = [False] * self._D
+            self._k_cap = [math.inf] * self._D
+            self._done = False
+
+    def request_stop(self, dim: int, position: float) -> None:
+        """Collision braking (eq. 15): dimension ``dim`` stops at ``position`` [unit] while the stop
+        lies between the state and the via-point it is heading to. Replaces an earlier request."""
+        if not 0 <= dim < self._D:
+            raise ShapeError(f"dimension index {dim} out of range 0..{self._D - 1}")
+        if not math.isfinite(position):
+            raise ParameterError("stop position must be finite")
+        self._stops[dim] = float(position)
+
+    def set_stops(self, positions: ArrayLike) -> None:
+        """Set every dimension's stop at once: ``positions (D,)`` [unit], NaN meaning no stop."""
+        p = np.asarray(positions, dtype=float).ravel()
+        if p.shape != (self._D,):
+            raise ShapeError(f"stops must have shape ({self._D},), got {np.shape(positions)}")
+        self._stops = [None if math.isnan(e) else float(e) for e in p]
+
+    def clear_stops(self) -> None:
+        """Remove every collision stop; the motion resumes from wherever it is."""
+        self._stops = [None] * self._D
+
+    def reset(self) -> None:
+        """Start the motion over (first segment) with the current goal."""
+        self._segment = [0] * self._D
+        self._terminal = [False] * self._D
+        self._k_cap = [math.inf] * self._D
+        self._done = False
+
+    # ------------------------------------------------------------------ the control law
+    def step(self, x: ArrayLike, v: ArrayLike, dt: float) -> NDArray[np.float64]:
+        """Acceleration command ``(D,)`` [unit/s²] for the measured state ``x, v (D,)`` over ``dt`` [s]."""
+        D = self._D
+        xs = x.tolist() if isinstance(x, np.ndarray) else list(x)
+        vs = v.tolist() if isinstance(v, np.ndarray) else list(v)
+        if len(xs) != D or len(vs) != D:
+            raise ShapeError(f"state must have shape ({D},), got x {len(xs)}, v {len(vs)}")
+        if not dt > 0.0:
+            raise ParameterError(f"dt must be > 0, got {dt}")
+        acc = [0.0] * D
+        t_e = self._t_e
+        braking = [False] * D
+        all_done = True
+        for d in range(D):
+            a, te, mode = self._dimension(d, xs[d], vs[d], dt)
+            acc[d] = a
+            t_e[d] = te
+            self._modes[d] = mode
+            braking[d] = mode == MODE_SEGMENT and not self._chains[d].hold
+            if not (
+                mode == MODE_TERMINAL
+                and abs(xs[d] - self._goal[d]) <= self._pos_tol
+                and abs(vs[d]) <= self._vel_tol
+            ):
+                all_done = False
+        self._done = all_done
+        # Eq. 14: slow the dimensions ahead of the slowest one.
+        gain = self._sync_gain
+        if gain > 0.0 and D > 1:
+            t_big = max((t_e[d] for d in range(D) if braking[d] and t_e[d] < math.inf), default=0.0)
+            for d in range(D):
+                if braking[d] and t_e[d] < t_big:
+                    acc[d] -= gain * vs[d] * (t_big - t_e[d])
+        return np.array(acc)
+
+    def _dimension(self, d: int, x: float, v: float, dt: float) -> tuple[float, float, str]:
+        """Acceleration, time to completion and mode of dimension ``d``."""
+        chain = self._chains[d]
+        g = self._goal[d]
+        n = self._n[d]
+        if self._terminal[d]:
+            return self._terminal_law(x - g, v, dt), 0.0, MODE_TERMINAL
+        offsets, dirs, m = chain.offsets, self._dir[d], self._m[d]
+        pos_tol = self._pos_tol
+        j = self._segment[d]
+        while True:
+            x_n = g + offsets[j + 1]
+            v_n = chain.velocities[j + 1]
+            delta = x_n - x
+            last = j == n - 1
+            if not last and delta * dirs[j] <= 0.0:
+                j += 1  # progress: this via-point is already behind the state
+                continue
+            if abs(delta) <= pos_tol:
+                if last:
+                    if abs(v) <= self._vel_tol:
+                        break
+                else:
+                    j += 1
+                    continue
+            direction = 1.0 if delta > 0.0 else -1.0
+            v_along = v * direction
+            wrong_way = v_along < 0.0 and -v_along > m * dt
+            v_eff = v if v_along >= 0.0 else 0.0  # a wrong-way speed below one tick of m is rest
+            if j != self._segment[d]:
+                self._k_cap[d] = math.inf
+            # Clamp k below the stability bound of the measured state. The clamp only tightens
+            # within a segment: re-solving from each new state would otherwise ride the bound
+            # and creep (the bound rises as the segment progresses).
+            k_eff = min(chain.k[j], k_limit(v_eff, v_n, delta, chain.kappa[j]), self._k_cap[d])
+            if k_eff < chain.k[j]:
+                self._k_cap[d] = k_eff
+            if wrong_way:
+                t_stop = -v_along / m
+                x_stop = x + 0.5 * v * t_stop
+                t_seg = t_stop + time_to_reach(x_stop, 0.0, x_n, v_n, k_eff)
+            else:
+                t_seg = time_to_reach(x, v_eff, x_n, v_n, k_eff)
+            if t_seg <= dt and not wrong_way:
+                if last:
+                    break
+                j += 1  # the via-point is reached within this tick
+                continue
+            break
+        self._segment[d] = j
+        if last and ((abs(delta) <= pos_tol and abs(v) <= self._vel_tol) or t_seg <= dt):
+            self._terminal[d] = True
+            return self._terminal_law(x - g, v, dt), 0.0, MODE_TERMINAL
+        te = t_seg + self._tail[d][j]
+        stop = self._stops[d]
+        if stop is not None:
+            gap = stop - x
+            if 0.0 < gap * direction <= abs(delta):
+                # Eq. 15: the obstacle stop lies ahead of the state, before the via-point.
+                if v * gap > 0.0:
+                    return -v * v / (2.0 * gap), math.inf, MODE_STOP
+                return 0.0, math.inf, MODE_STOP
+            if gap * v <= 0.0 and abs(gap) <= abs(v) * dt:
+                # On (or a tick past) the stop line and still moving: brake to rest.
+                return -math.copysign(min(m, abs(v) / dt), v), math.inf, MODE_STOP
+        if wrong_way:
+            # Eq. 10: moving away from x_n; brake at constant m until the velocity is zero.
+            return m * direction, te, MODE_WRONG_WAY
+        # Eq. 7 with the corrected eq. 5, solved from the measured state. The command is the
+        # constant acceleration that gives the PSTF's exact velocity one tick later:
+        # v(dt) = v C + a_c dt S with z = k dt² (see psm.pstf.propagate).
+        a_c = (v_n * v_n - v_eff * v_eff) / (2.0 * delta) - 0.5 * k_eff * delta
+        z = k_eff * dt * dt
+        if abs(z) < 1e-5:
+            c_m1 = z * (0.5 + z / 24.0)
+            s_ = 1.0 + z / 6.0
+        elif z > 0.0:
+            r = math.sqrt(z)
+            c_m1 = math.cosh(r) - 1.0
+            s_ = math.sinh(r) / r
+        else:
+            r = math.sqrt(-z)
+            c_m1 = math.cos(r) - 1.0
+            s_ = math.sin(r) / r
+        a = (v_eff * c_m1 + a_c * dt * s_) / dt + (v_eff - v) / dt
+        return a, te, MODE_SEGMENT
+
+    def _terminal_law(self, error: float, v: float, dt: float) -> float:
+        """Critically damped hold of the goal: ``−ω² e − 2ω v`` with ``ω`` = terminal_omega or 0.2/dt."""
+        w = self._terminal_omega if self._terminal_omega is not None else 0.2 / dt
+        return -w * w * error - 2.0 * w * v
+

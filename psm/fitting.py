@@ -1,0 +1,402 @@
+"""Learning one dimension of a PSM from a demonstration (paper §III-C, DESIGN §4).
+
+Pipeline for each dimension of a demonstration ``t (T,) [s]``, ``X (T, D)``:
+
+1. validate and put on a uniform time grid (:func:`validate_demonstration`);
+2. Gaussian-kernel smoothing (sigma in seconds) and numerical derivatives (:func:`smooth`);
+3. cut points: every direction reversal is a cut (:func:`turning_points`, a zig-zag filter with
+   hysteresis so sensor noise is not a reversal); on top of that either the paper's cuts uniform in
+   time (``segments=N``), the user's cut times, or ``"auto"`` (:func:`auto_cuts`): top-down splitting
+   that minimises the piecewise-linear fit error in the position–acceleration plane until every
+   segment is under a tolerance;
+4. per segment: ``ẍ = c₀ + k (x − m)`` with ``c₀`` fixed by the boundary velocities (corrected eq. 5)
+   and ``k`` by closed-form least squares, clamped below the stability bound (:mod:`psm.pstf`).
+
+Least squares over any sample range is O(1) from prefix sums (:class:`_PrefixSums`), which makes
+``"auto"`` a handful of vectorised passes instead of a search over all partitions.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import gaussian_filter1d
+
+from psm.errors import DemonstrationError, ParameterError
+from psm.pstf import k_for_duration, time_to_reach
+
+#: Fewest samples a demonstration may have.
+MIN_SAMPLES = 8
+#: Time stamps whose spacing varies less than this (relative) are used as they are; otherwise the
+#: demonstration is linearly resampled to its median spacing.
+UNIFORM_RTOL = 1e-3
+
+
+@dataclass(frozen=True)
+class SmoothedDemo:
+    """A demonstration on a uniform grid, smoothed and differentiated.
+
+    ``t (T,) [s]`` starting at 0; ``x, v, a (T, D)``: position [unit], velocity [unit/s],
+    acceleration [unit/s²]; ``dt [s]`` the grid spacing.
+    """
+
+    t: NDArray[np.float64]
+    x: NDArray[np.float64]
+    v: NDArray[np.float64]
+    a: NDArray[np.float64]
+    dt: float
+
+
+@dataclass(frozen=True)
+class DimensionFit:
+    """The learned PSTF chain of one dimension.
+
+    ``knots (N+1,)`` via-point positions [unit] (absolute, demonstration frame), ``velocities (N+1,)``
+    [unit/s], ``k (N,)`` [1/s²], ``kappa (N,)`` stability margins [1/s²], ``durations (N,)`` [s]
+    the model's nominal time per segment, ``cut_indices (N+1,)`` the demonstration samples of the
+    knots, ``hold`` true when the dimension barely moves (one rest-to-rest segment).
+    """
+
+    knots: NDArray[np.float64]
+    velocities: NDArray[np.float64]
+    k: NDArray[np.float64]
+    kappa: NDArray[np.float64]
+    durations: NDArray[np.float64]
+    cut_indices: NDArray[np.int64]
+    hold: bool
+
+
+def validate_demonstration(t: ArrayLike, X: ArrayLike) -> tuple[NDArray, NDArray]:
+    """Check a demonstration and return it as float arrays ``t (T,)``, ``X (T, D)`` on a uniform grid.
+
+    ``X`` may be ``(T,)`` for one dimension. Raises :class:`DemonstrationError` naming the problem:
+    non-finite values, fewer than :data:`MIN_SAMPLES` samples, non-increasing time, length mismatch.
+    """
+    try:
+        t = np.asarray(t, dtype=float)
+        X = np.asarray(X, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise DemonstrationError(f"demonstration is not numeric: {exc}") from None
+    if t.ndim != 1:
+        raise DemonstrationError(f"t must have shape (T,), got {t.shape}")
+    if X.ndim == 1:
+        X = X[:, None]
+    if X.ndim != 2:
+        raise DemonstrationError(f"X must have shape (T, D), got {X.shape}")
+    if X.shape[0] != t.shape[0]:
+        raise DemonstrationError(f"t has {t.shape[0]} samples but X has {X.shape[0]}")
+    if X.shape[1] == 0:
+        raise DemonstrationError("X has no dimension (D = 0)")
+    if t.shape[0] < MIN_SAMPLES:
+        raise DemonstrationError(f"need at least {MIN_SAMPLES} samples, got {t.shape[0]}")
+    if not np.all(np.isfinite(t)):
+        raise DemonstrationError(f"t has a non-finite value at index {int(np.argmin(np.isfinite(t)))}")
+    bad = ~np.isfinite(X)
+    if bad.any():
+        i, d = np.argwhere(bad)[0]
+        raise DemonstrationError(f"X has a non-finite value at sample {i}, dimension {d}")
+    steps = np.diff(t)
+    if np.any(steps <= 0):
+        i = int(np.argmax(steps <= 0))
+        raise DemonstrationError(f"t must be strictly increasing (t[{i + 1}] <= t[{i}])")
+    dt = float(np.median(steps))
+    if np.max(np.abs(steps - dt)) > UNIFORM_RTOL * dt:
+        grid = t[0] + dt * np.arange(math.floor((t[-1] - t[0]) / dt + 1e-9) + 1)
+        X = np.stack([np.interp(grid, t, X[:, d]) for d in range(X.shape[1])], axis=1)
+        t = grid
+    return t - t[0], X
+
+
+def smooth(t: NDArray, X: NDArray, sigma: float) -> SmoothedDemo:
+    """Gaussian-kernel smoothing with standard deviation ``sigma`` [s] (0 disables it), then velocity
+    and acceleration by second-order central differences. ``t (T,)`` uniform, ``X (T, D)``."""
+    if not (sigma >= 0.0 and math.isfinite(sigma)):
+        raise ParameterError(f"smoothing must be a finite number of seconds >= 0, got {sigma}")
+    dt = float(t[1] - t[0])
+    x = gaussian_filter1d(X, sigma / dt, axis=0, mode="nearest") if sigma > 0 else X.copy()
+    v = np.gradient(x, dt, axis=0)
+    a = np.gradient(v, dt, axis=0)
+    return SmoothedDemo(t=t, x=x, v=v, a=a, dt=dt)
+
+
+def turning_points(x: NDArray, tolerance: float) -> list[int]:
+    """Indices of direction reversals of ``x (T,)``, ignoring reversals smaller than ``tolerance``.
+
+    A zig-zag filter: a local extremum becomes a cut only once the motion has come back from it by
+    at least ``tolerance`` [unit]; the extreme sample of each leg is the cut. Endpoints excluded.
+    """
+    dx = np.diff(x)
+    sign = np.sign(dx)
+    nz = np.flatnonzero(sign)
+    if nz.size < 2:
+        return []
+    flips = nz[1:][sign[nz[1:]] != sign[nz[:-1]]]  # first step of each new direction
+    candidates = [*list(flips), x.shape[0] - 1]
+    pivots: list[int] = []
+    trend = 0.0
+    origin = 0
+    extreme = 0
+    for i in candidates:
+        xi = x[i]
+        if trend == 0.0:
+            if abs(xi - x[origin]) >= tolerance:
+                trend = math.copysign(1.0, xi - x[origin])
+                extreme = i
+            continue
+        if (xi - x[extreme]) * trend > 0.0:
+            extreme = i
+        elif (x[extreme] - xi) * trend >= tolerance:
+            pivots.append(extreme)
+            trend = -trend
+            extreme = i
+    if trend == 0.0:
+        return []
+    # Refine each pivot to the extreme sample between its neighbours (candidates are step starts).
+    refined = []
+    bounds = [0, *pivots, x.shape[0] - 1]
+    for p_i, p in enumerate(pivots):
+        lo, hi = bounds[p_i], bounds[p_i + 2]
+        window = x[lo : hi + 1]
+        refined.append(lo + int(np.argmax(window) if x[p] >= x[lo] else np.argmin(window)))
+    return refined
+
+
+class _PrefixSums:
+    """Prefix sums of one dimension's samples, for O(1) least squares over any index range."""
+
+    def __init__(self, x: NDArray, a: NDArray) -> None:
+        zero = np.zeros(1)
+        self.sx = np.concatenate([zero, np.cumsum(x)])
+        self.sxx = np.concatenate([zero, np.cumsum(x * x)])
+        self.sa = np.concatenate([zero, np.cumsum(a)])
+        self.saa = np.concatenate([zero, np.cumsum(a * a)])
+        self.sxa = np.concatenate([zero, np.cumsum(x * a)])
+
+    def fit(
+        self,
+        i: NDArray,
+        j: NDArray,
+        x: NDArray,
+        v: NDArray,
+        kappa: NDArray,
+        k_rest: NDArray,
+    ) -> tuple[NDArray, NDArray]:
+        """Least-squares ``k`` and residual sum of squares of ``a ≈ c₀ + k (x − m)`` over samples
+        ``i..j`` (inclusive, arrays of equal shape), with ``c₀, m`` from the end samples and ``k``
+        clamped to ``k_max − kappa``. ``k_rest`` replaces ``k`` where the ends are both at rest and
+        the clamp leaves no valid slope. Returns ``(k, sse)`` [1/s², unit²/s⁴]."""
+        n = (j - i + 1).astype(float)
+        sx = self.sx[j + 1] - self.sx[i]
+        sxx = self.sxx[j + 1] - self.sxx[i]
+        sa = self.sa[j + 1] - self.sa[i]
+        saa = self.saa[j + 1] - self.saa[i]
+        sxa = self.sxa[j + 1] - self.sxa[i]
+        x_c, x_n, v_c, v_n = x[i], x[j], v[i], v[j]
+        delta = x_n - x_c
+        safe = np.where(delta == 0.0, 1.0, delta)
+        c0 = (v_n * v_n - v_c * v_c) / (2.0 * safe)
+        m = 0.5 * (x_c + x_n)
+        num = sxa - m * sa - c0 * sx + n * c0 * m
+        den = sxx - 2.0 * m * sx + n * m * m
+        k_ls = num / np.where(den > 0.0, den, 1.0)
+        k_cap = ((np.abs(v_c) + np.abs(v_n)) / safe) ** 2 - kappa
+        k = np.minimum(k_ls, k_cap)
+        k = np.where(np.isfinite(k), k, k_rest)
+        sse = saa - 2.0 * c0 * sa + n * c0 * c0 - 2.0 * k * num + k * k * den
+        return k, np.maximum(sse, 0.0)
+
+
+def acceleration_noise_variance(a: NDArray, width: int) -> float:
+    """Variance [unit²/s⁴] of the fast, zero-mean part of an acceleration ``a (T,)``: what is left
+    after a further Gaussian smoothing over ``width`` samples (a robust, median-based estimate)."""
+    fast = a - gaussian_filter1d(a, max(float(width), 1.0), mode="nearest")
+    mad = float(np.median(np.abs(fast - np.median(fast))))
+    return (1.4826 * mad) ** 2
+
+
+def _segment_kappa(delta: NDArray, duration: NDArray, min_speed_ratio: float) -> NDArray:
+    """Stability margin ``(2μ/T)²`` [1/s²] of segments lasting ``duration`` [s] in the demo."""
+    return (2.0 * min_speed_ratio / np.maximum(duration, 1e-12)) ** 2 * (delta != 0.0)
+
+
+def auto_cuts(
+    cuts: list[int],
+    x: NDArray,
+    v: NDArray,
+    a: NDArray,
+    dt: float,
+    tolerance: float,
+    min_samples: int,
+    min_delta: float,
+    max_segments: int,
+    min_speed_ratio: float,
+    sums: _PrefixSums,
+    noise_var: float = 0.0,
+) -> list[int]:
+    """Refine ``cuts`` (sorted sample indices including both ends) by top-down splitting.
+
+    ``tolerance`` [unit] is a position error budget. A segment of duration ``T`` whose RMS
+    acceleration residual is ``e`` deviates in position by about ``e T²/8`` (an acceleration error
+    acting between two pinned ends), so a segment is split while ``e T²/8 > tolerance``, where
+    ``e² = max(mean squared residual − noise_var, 0)``: the acceleration noise ``noise_var``
+    [unit²/s⁴] of the demonstration is zero-mean and does not bend the path, so it is not fitted.
+    The worst segment (largest ``e T²/8``) is split at the sample that minimises the two halves'
+    total residual, subject to each half having at least ``min_samples`` samples and moving at
+    least ``min_delta`` [unit], until none is over budget or ``max_segments`` exist. Velocity sign
+    changes never fall inside a segment because the turning points are already cuts.
+    """
+    cuts = sorted(set(cuts))
+    seg_sse: dict[int, float] = {}
+    blocked: set[int] = set()
+
+    def sse_of(lo: int, hi: int) -> float:
+        i = np.array([lo])
+        j = np.array([hi])
+        kap = _segment_kappa(x[j] - x[i], (j - i) * dt, min_speed_ratio)
+        _, sse = sums.fit(i, j, x, v, kap, -kap)
+        return float(sse[0])
+
+    for lo, hi in itertools.pairwise(cuts):
+        seg_sse[lo] = sse_of(lo, hi)
+    while len(cuts) - 1 < max_segments:
+        worst, worst_err = -1, tolerance
+        for idx, lo in enumerate(cuts[:-1]):
+            if lo in blocked:
+                continue
+            hi = cuts[idx + 1]
+            duration = (hi - lo) * dt
+            excess = max(seg_sse[lo] / (hi - lo + 1) - noise_var, 0.0)
+            err = math.sqrt(excess) * duration * duration / 8.0
+            if err > worst_err:
+                worst, worst_err = idx, err
+        if worst < 0:
+            break
+        lo, hi = cuts[worst], cuts[worst + 1]
+        worst_sse = seg_sse[lo]
+        cand = np.arange(lo + min_samples, hi - min_samples + 1)
+        if cand.size:
+            ok = (np.abs(x[cand] - x[lo]) >= min_delta) & (np.abs(x[hi] - x[cand]) >= min_delta)
+            cand = cand[ok]
+        if cand.size == 0:
+            blocked.add(lo)
+            continue
+        # Thin the candidates to at most ~256 evenly spaced samples: O(1) fits each.
+        if cand.size > 256:
+            cand = cand[:: math.ceil(cand.size / 256)]
+        los = np.full(cand.shape, lo)
+        his = np.full(cand.shape, hi)
+        kap_l = _segment_kappa(x[cand] - x[lo], (cand - lo) * dt, min_speed_ratio)
+        kap_r = _segment_kappa(x[hi] - x[cand], (hi - cand) * dt, min_speed_ratio)
+        _, sse_l = sums.fit(los, cand, x, v, kap_l, -kap_l)
+        _, sse_r = sums.fit(cand, his, x, v, kap_r, -kap_r)
+        total = sse_l + sse_r
+        best = int(np.argmin(total))
+        if not total[best] < worst_sse:
+            blocked.add(lo)
+            continue
+        s = int(cand[best])
+        cuts.insert(worst + 1, s)
+        seg_sse[lo] = float(sse_l[best])
+        seg_sse[s] = float(sse_r[best])
+    return cuts
+
+
+def _merge_short(cuts: list[int], fixed: set[int], x: NDArray, min_delta: float) -> list[int]:
+    """Drop optional cuts that leave a segment moving less than ``min_delta`` [unit]."""
+    out = [cuts[0]]
+    for c in cuts[1:-1]:
+        if c in fixed or (abs(x[c] - x[out[-1]]) >= min_delta and abs(x[cuts[-1]] - x[c]) >= min_delta):
+            out.append(c)
+    out.append(cuts[-1])
+    return out
+
+
+def fit_dimension(
+    demo_t: NDArray,
+    x: NDArray,
+    v: NDArray,
+    a: NDArray,
+    dt: float,
+    segments: str | int | Sequence[float],
+    hold_tolerance: float,
+    auto_tolerance: float,
+    max_segments: int,
+    min_speed_ratio: float,
+    min_segment_samples: int,
+    k_fit: str = "least_squares",
+) -> DimensionFit:
+    """Learn the PSTF chain of one dimension from smoothed samples ``x, v, a (T,)``.
+
+    ``segments``: ``"auto"``, a number of segments uniform in time (the paper's choice; direction
+    reversals are added as cuts), or a sequence of cut times [s] from the demonstration's start.
+    A dimension whose range is below ``hold_tolerance`` [unit] becomes one rest-to-rest hold.
+    """
+    T = x.shape[0]
+    duration = float(demo_t[-1])
+    if float(np.ptp(x)) < hold_tolerance:
+        knots = np.array([x[0], x[-1]])
+        kappa = np.array([(math.pi / duration) ** 2])
+        k = -kappa.copy()
+        dur = np.array([time_to_reach(x[0], 0.0, x[-1], 0.0, k[0]) if x[-1] != x[0] else 0.0])
+        return DimensionFit(
+            knots=knots, velocities=np.zeros(2), k=k, kappa=kappa, durations=dur,
+            cut_indices=np.array([0, T - 1]), hold=True,
+        )
+    turns = turning_points(x, hold_tolerance)
+    fixed = {0, T - 1, *turns}
+    sums = _PrefixSums(x, a)
+    if isinstance(segments, str):
+        if segments != "auto":
+            raise ParameterError(f"segments must be 'auto', an int or cut times, got {segments!r}")
+        cuts = _merge_short(sorted(fixed), fixed, x, hold_tolerance)
+        cuts = auto_cuts(
+            cuts, x, v, a, dt, auto_tolerance, min_segment_samples, hold_tolerance,
+            max_segments, min_speed_ratio, sums, acceleration_noise_variance(a, 5 * min_segment_samples),
+        )
+    else:
+        if isinstance(segments, int | np.integer):
+            if segments < 1:
+                raise ParameterError(f"segments must be >= 1, got {segments}")
+            times = np.linspace(0.0, duration, int(segments) + 1)[1:-1]
+        else:
+            times = np.asarray(segments, dtype=float).ravel()
+            if not np.all(np.isfinite(times)) or np.any((times <= 0) | (times >= duration)):
+                raise ParameterError(f"cut times must lie strictly inside (0, {duration:g}) s")
+        extra = {round(tc / dt) for tc in times}
+        cuts = _merge_short(sorted(fixed | extra), fixed, x, hold_tolerance)
+    cut_idx = np.asarray(cuts, dtype=np.int64)
+    knots = x[cut_idx].copy()
+    vel = v[cut_idx].copy()
+    vel[0] = v[0]
+    vel[-1] = 0.0
+    for p in turns:
+        vel[cut_idx == p] = 0.0
+    # A knot velocity must point along the segments it joins (noise can flip a near-zero one).
+    direction = np.sign(np.diff(knots))
+    vel[:-1] = np.where(vel[:-1] * direction < 0.0, 0.0, vel[:-1])
+    vel[1:] = np.where(vel[1:] * direction < 0.0, 0.0, vel[1:])
+    i, j = cut_idx[:-1], cut_idx[1:]
+    delta = knots[1:] - knots[:-1]
+    kappa = _segment_kappa(delta, (j - i) * dt, min_speed_ratio)
+    # Fit on the knots' (possibly zeroed) velocities so c₀ is the one the controller will use.
+    v_k = v.copy()
+    v_k[cut_idx] = vel
+    k, _ = sums.fit(i, j, x, v_k, kappa, -kappa)
+    if k_fit == "duration":
+        cap = ((np.abs(vel[:-1]) + np.abs(vel[1:])) / delta) ** 2 - kappa
+        k = np.array([
+            k_for_duration(knots[s], vel[s], knots[s + 1], vel[s + 1], (j[s] - i[s]) * dt, cap[s])
+            for s in range(k.size)
+        ])
+    durations = np.array(
+        [time_to_reach(knots[s], vel[s], knots[s + 1], vel[s + 1], k[s]) for s in range(k.size)]
+    )
+    return DimensionFit(
+        knots=knots, velocities=vel, k=k, kappa=kappa, durations=durations,
+        cut_indices=cut_idx, hold=False,
+    )

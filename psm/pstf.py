@@ -1,0 +1,199 @@
+"""The phase space transition function (PSTF) of one segment in one dimension.
+
+A PSTF drives a unit point mass with the linear law ``ẍ = k x + c`` from a current phase-space
+state ``(x_c, v_c)`` to a target state ``(x_n, v_n)``. Everything here follows DESIGN.md §4 (the
+paper's equations 4–12 with their typos corrected):
+
+* energy: ``v²/2 = v_c²/2 + ∫ (k s + c) ds`` from ``x_c`` to ``x``;
+* eq. 5 (sign fixed): ``c = (v_n² − v_c²)/(2Δ) − k (x_n + x_c)/2`` with ``Δ = x_n − x_c``;
+* written around the segment mid-point ``m = (x_c + x_n)/2``: ``ẍ = c₀ + k (x − m)`` with
+  ``c₀ = (v_n² − v_c²)/(2Δ)``, so the acceleration at the two ends is ``c₀ ∓ kΔ/2``;
+* stability: the target is reached iff the kinetic energy stays positive inside the interval,
+  i.e. iff ``k < k_max = ((|v_c| + |v_n|)/Δ)²`` (and both velocities point along ``Δ`` or are 0).
+
+The functions are written with ``math`` on Python floats because the online controller calls them
+every control tick (1–2 ms) and scalar ``math`` is several times faster than numpy on one number.
+:func:`propagate` and :func:`kinetic_energy` accept numpy arrays for plots and tests.
+
+Units: positions [m] (or any length unit), velocities [unit/s], accelerations [unit/s²],
+``k`` [1/s²], times [s].
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+#: Below this |k|·T₀² the segment is treated as k = 0 (T₀ = 2|Δ|/(|v_c|+|v_n|)); the relative
+#: error of the k = 0 time formula there is below 1e-9.
+K_ZERO_TOL = 1e-8
+#: Below this |z| = |k| t² the series expansions of cosh/sinh are used (error < 1e-13).
+_Z_SERIES = 1e-5
+
+
+def mid_point_form(x_c: float, v_c: float, x_n: float, v_n: float) -> tuple[float, float]:
+    """Return ``(c₀, m)`` of the law ``ẍ = c₀ + k (x − m)`` for the segment ``x_c → x_n``.
+
+    ``c₀ = (v_n² − v_c²)/(2Δ)`` [unit/s²] is the acceleration at the mid-point ``m`` whatever
+    ``k`` is. Requires ``Δ = x_n − x_c ≠ 0``.
+    """
+    delta = x_n - x_c
+    return (v_n * v_n - v_c * v_c) / (2.0 * delta), 0.5 * (x_n + x_c)
+
+
+def coefficient_c(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> float:
+    """Eq. 5, corrected: the constant ``c`` [unit/s²] for which ``ẍ = k x + c`` reaches ``v_n``
+    at ``x_n`` starting from ``(x_c, v_c)``. Requires ``x_n ≠ x_c``."""
+    c0, m = mid_point_form(x_c, v_c, x_n, v_n)
+    return c0 - k * m
+
+
+def k_max(v_c: float, v_n: float, delta: float) -> float:
+    """Stability bound ``((|v_c| + |v_n|)/Δ)²`` [1/s²]: every ``k`` strictly below it reaches the
+    target (when both velocities point along ``Δ`` or are zero); ``+inf`` for ``Δ = 0``."""
+    if delta == 0.0:
+        return math.inf
+    r = (abs(v_c) + abs(v_n)) / delta
+    return r * r
+
+
+def k_limit(v_c: float, v_n: float, delta: float, kappa: float) -> float:
+    """The largest ``k`` [1/s²] allowed for a segment: ``k_max − kappa``.
+
+    ``kappa ≥ 0`` [1/s²] is the stability margin. With ``kappa = (2μ/T)²`` the kinetic energy is
+    kept above the parabola ``2 (μ Δ/T)² · 4s(1−s)`` (``s`` the fraction of the segment done), so
+    the speed at the segment's mid-point never drops below ``μ`` times the mean speed ``Δ/T``: the
+    segment cannot stall, and a rest-to-rest segment takes ``π T / (2μ)``. Since the kinetic energy
+    of a sub-interval is that of the interval, the bound only grows along an unperturbed segment.
+    """
+    return k_max(v_c, v_n, delta) - kappa
+
+
+def is_stable(v_c: float, v_n: float, delta: float, k: float) -> bool:
+    """True iff the PSTF from velocity ``v_c`` reaches velocity ``v_n`` after a displacement
+    ``delta`` with this ``k``: both velocities along ``delta`` (or zero) and ``k < k_max``."""
+    if delta == 0.0:
+        return False
+    if v_c * delta < 0.0 or v_n * delta < 0.0:
+        return False
+    return k < k_max(v_c, v_n, delta)
+
+
+def kinetic_energy(
+    s: ArrayLike, v_c: float, v_n: float, delta: float, k: float
+) -> NDArray[np.float64]:
+    """Kinetic energy per unit mass ``v²/2`` [unit²/s²] at the fraction ``s ∈ [0, 1]`` of the segment:
+    ``KE(s) = (1 − s) E_c + s E_n − (k Δ²/2) s (1 − s)``. ``s``: any shape."""
+    s = np.asarray(s, dtype=float)
+    e_c, e_n = 0.5 * v_c * v_c, 0.5 * v_n * v_n
+    return (1.0 - s) * e_c + s * e_n - 0.5 * k * delta * delta * s * (1.0 - s)
+
+
+def _cs_g(z: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+    """Return ``C(z), S(z), G(z)`` with ``C = cosh √z``, ``S = sinh(√z)/√z``, ``G = (C − 1)/z``
+    (their analytic continuations for ``z < 0``: cos, sin), stable through ``z = 0``."""
+    c = np.empty_like(z)
+    s = np.empty_like(z)
+    g = np.empty_like(z)
+    small = np.abs(z) < _Z_SERIES
+    pos = (z > 0) & ~small
+    neg = (z < 0) & ~small
+    zs = z[small]
+    c[small] = 1.0 + zs / 2.0 + zs * zs / 24.0
+    s[small] = 1.0 + zs / 6.0 + zs * zs / 120.0
+    g[small] = 0.5 + zs / 24.0 + zs * zs / 720.0
+    r = np.sqrt(z[pos])
+    c[pos] = np.cosh(r)
+    s[pos] = np.sinh(r) / r
+    g[pos] = (c[pos] - 1.0) / z[pos]
+    r = np.sqrt(-z[neg])
+    c[neg] = np.cos(r)
+    s[neg] = np.sin(r) / r
+    g[neg] = (1.0 - c[neg]) / (r * r)
+    return c, s, g
+
+
+def propagate(
+    t: ArrayLike, x_c: float, v_c: float, k: float, c: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Closed-form solution of ``ẍ = k x + c`` from ``(x_c, v_c)`` at ``t = 0`` (eq. 6, corrected).
+
+    Written as ``x(t) = x_c + v_c t S(kt²) + a_c t² G(kt²)`` with ``a_c = k x_c + c``, which equals
+    the exponential (k > 0), trigonometric (k < 0) and parabolic (k = 0) forms of DESIGN §4 but
+    stays exact as ``k → 0`` (no ``c/k``). ``t``: any shape [s]; returns ``(x, v)`` of that shape.
+    """
+    t = np.asarray(t, dtype=float)
+    a_c = k * x_c + c
+    c_, s_, g_ = _cs_g(k * t * t)
+    x = x_c + v_c * t * s_ + a_c * t * t * g_
+    v = v_c * c_ + a_c * t * s_
+    return x, v
+
+
+def time_to_reach(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> float:
+    """Time [s] the PSTF with slope ``k`` takes from ``(x_c, v_c)`` to ``(x_n, v_n)`` (eqs. 11–12).
+
+    ``c`` follows from eq. 5. Returns a finite positive time for every stable segment and ``inf``
+    for an unstable one (``k ≥ k_max``, a velocity pointing away from ``x_n``) or a stalled one
+    (``v_c = v_n = 0`` with ``k ≥ 0``); ``0`` when ``x_c = x_n``.
+
+    * ``k > 0``, ``ω = √k``: ``t = ln[(a_n/ω + v_n)/(a_c/ω + v_c)]/ω`` (the paper's log form,
+      written with the end accelerations ``a = k x + c`` so that no ``c/k`` appears); the mirror
+      form ``−ln[(a_n/ω − v_n)/(a_c/ω − v_c)]/ω`` is used when its denominator is larger.
+    * ``k < 0``, ``ω = √−k``: ``θ = atan2(−v ω, −a)`` at both ends, ``t = ((θ_n − θ_c) mod 2π)/ω``.
+    * ``k ≈ 0``: ``t = 2Δ/(v_c + v_n)``.
+    """
+    delta = x_n - x_c
+    if delta == 0.0:
+        return 0.0
+    if not is_stable(v_c, v_n, delta, k):
+        return math.inf
+    speed_sum = abs(v_c) + abs(v_n)
+    t0 = 2.0 * abs(delta) / speed_sum if speed_sum > 0.0 else math.inf
+    if t0 != math.inf and abs(k) * t0 * t0 < K_ZERO_TOL:
+        return t0
+    if k == 0.0:
+        return t0
+    c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
+    a_c = c0 - 0.5 * k * delta
+    a_n = c0 + 0.5 * k * delta
+    if k > 0.0:
+        w = math.sqrt(k)
+        p_c, q_c = a_c / w + v_c, a_c / w - v_c
+        ratio = (a_n / w + v_n) / p_c if abs(p_c) >= abs(q_c) else q_c / (a_n / w - v_n)
+        if not ratio > 0.0:
+            return math.inf
+        return max(math.log(ratio) / w, 0.0)
+    w = math.sqrt(-k)
+    theta_c = math.atan2(-v_c * w, -a_c)
+    theta_n = math.atan2(-v_n * w, -a_n)
+    dtheta = (theta_n - theta_c) % (2.0 * math.pi)
+    # A monotone segment covers at most half a period; 2π − ε only arises from rounding near 0.
+    if dtheta > 1.5 * math.pi:
+        dtheta = 0.0
+    return dtheta / w
+
+
+def k_for_duration(
+    x_c: float, v_c: float, x_n: float, v_n: float, duration: float, k_high: float
+) -> float:
+    """The slope ``k`` [1/s²] whose PSTF goes from ``(x_c, v_c)`` to ``(x_n, v_n)`` in ``duration`` [s].
+
+    The time to reach grows strictly with ``k`` (a larger ``k`` lowers the kinetic energy at every
+    interior point) from 0 as ``k → −∞`` to ``∞`` at ``k_max``, so the answer is unique; it is found
+    by Brent's method on ``(−4(π/duration)², k_high]`` (at ``−4(π/duration)²`` even a rest-to-rest
+    segment takes only ``duration/2``). Returns ``k_high`` when even that is faster than asked.
+    """
+    from scipy.optimize import brentq
+
+    if time_to_reach(x_c, v_c, x_n, v_n, k_high) <= duration:
+        return k_high
+    k_low = min(-4.0 * (math.pi / duration) ** 2, k_high - 1.0)
+    while time_to_reach(x_c, v_c, x_n, v_n, k_low) >= duration:
+        k_low *= 4.0
+    return float(
+        brentq(lambda k: time_to_reach(x_c, v_c, x_n, v_n, k) - duration, k_low, k_high, xtol=1e-9,
+               rtol=1e-10)
+    )

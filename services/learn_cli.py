@@ -1,0 +1,228 @@
+"""``psm learn``, ``psm rollout`` and ``psm demo``: the PSM core from the command line.
+
+Demonstration files:
+
+* CSV: a header row, then one row per sample; the column ``t`` (or the first column) is time [s],
+  the other columns (or those named with ``--columns``) are the positions;
+* NPZ: arrays ``t (T,)`` and ``X (T, D)``;
+* MCAP: a recording of the arm (``psm teach`` or any run): the end-effector trajectory is taken from
+  the arm-state messages on ``--topic`` (default ``<prefix>/arm/state``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from psm import PhaseSpaceModel, Rollout
+from psm.errors import DemonstrationError
+from psm.fitting import smooth, validate_demonstration
+
+
+def load_demonstration(
+    path: Path, columns: list[str] | None = None, topic: str | None = None
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Read a demonstration file: returns ``t (T,) [s]``, ``X (T, D)`` and the dimension names."""
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        with np.load(path) as data:
+            if "t" not in data or "X" not in data:
+                raise DemonstrationError(f"{path}: an NPZ demonstration needs arrays 't' and 'X'")
+            t, X = np.asarray(data["t"], float), np.asarray(data["X"], float)
+        X = X[:, None] if X.ndim == 1 else X
+        return t, X, [f"x{d}" for d in range(X.shape[1])]
+    if suffix == ".csv":
+        return _load_csv(path, columns)
+    if suffix == ".mcap":
+        from services.arm.demos import trajectory_from_recording
+
+        t, X = trajectory_from_recording(path, topic=topic)
+        return t, X, ["x", "y", "z"]
+    raise DemonstrationError(f"{path}: unknown demonstration format '{suffix}' (use .csv, .npz or .mcap)")
+
+
+def _load_csv(path: Path, columns: list[str] | None) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    with path.open(newline="") as fh:
+        rows = list(csv.reader(fh))
+    if len(rows) < 2:
+        raise DemonstrationError(f"{path}: a CSV demonstration needs a header row and samples")
+    header = [h.strip() for h in rows[0]]
+    time_col = header.index("t") if "t" in header else 0
+    names = columns or [h for i, h in enumerate(header) if i != time_col]
+    missing = [n for n in names if n not in header]
+    if missing:
+        raise DemonstrationError(f"{path}: no column named {missing[0]!r} (columns: {', '.join(header)})")
+    idx = [header.index(n) for n in names]
+    try:
+        data = np.array([[float(r[time_col])] + [float(r[i]) for i in idx] for r in rows[1:] if r])
+    except (ValueError, IndexError) as exc:
+        raise DemonstrationError(f"{path}: not numeric ({exc})") from None
+    return data[:, 0], data[:, 1:], names
+
+
+def _parse_vector(text: str | None, name: str) -> np.ndarray | None:
+    if text is None:
+        return None
+    try:
+        return np.array([float(v) for v in text.replace(",", " ").split()])
+    except ValueError:
+        raise DemonstrationError(f"--{name}: expected numbers separated by commas, got {text!r}") from None
+
+
+def plot_rollout(
+    path: Path, rollout: Rollout, model: PhaseSpaceModel, names: list[str],
+    demo: tuple[np.ndarray, np.ndarray] | None = None,
+) -> None:
+    """Write position-vs-time and phase-space (velocity vs position) plots of a rollout to ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    D = rollout.x.shape[1]
+    if demo is not None:
+        smoothed = smooth(*validate_demonstration(*demo), model.parameters.smoothing)
+        demo_x, demo_v = smoothed.x, smoothed.v
+    fig, axes = plt.subplots(2, D, figsize=(4.2 * D, 7), squeeze=False)
+    for d in range(D):
+        ax_t, ax_p = axes[0, d], axes[1, d]
+        if demo is not None:
+            t_demo, X_demo = demo
+            ax_t.plot(t_demo - t_demo[0], X_demo[:, d], "k-", lw=1.0, label="demonstration")
+            ax_p.plot(demo_x[:, d], demo_v[:, d], "k-", lw=1.0, label="demonstration (smoothed)")
+        ax_t.plot(rollout.t, rollout.x[:, d], "C0--", lw=1.5, label="PSM")
+        ax_t.plot(rollout.t, rollout.goal[:, d], "C3:", lw=1.0, label="goal")
+        ax_p.plot(rollout.x[:, d], rollout.v[:, d], "C0--", lw=1.5, label="PSM")
+        vp = model.via_points[d]
+        ax_p.plot(rollout.goal[-1, d] + vp.position, vp.velocity, "C1o", ms=4, label="via-points")
+        ax_t.set_title(f"{names[d]}: position")
+        ax_t.set_xlabel("t [s]")
+        ax_p.set_title(f"{names[d]}: phase space")
+        ax_p.set_xlabel("position")
+        ax_p.set_ylabel("velocity")
+        ax_t.grid(alpha=0.3)
+        ax_p.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=8)
+    axes[1, 0].legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _segments_arg(text: str) -> str | int | list[float]:
+    if text == "auto":
+        return "auto"
+    if "," in text:
+        return [float(v) for v in text.split(",")]
+    return int(text)
+
+
+def cmd_learn(args: argparse.Namespace) -> int:
+    """``psm learn DEMO -o MODEL``."""
+    t, X, names = load_demonstration(Path(args.demo), args.columns, args.topic)
+    model = PhaseSpaceModel.fit(t, X, segments=args.segments, smoothing=args.smoothing, k_fit=args.k_fit)
+    out = Path(args.output)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    model.save(out)
+    print(
+        f"learned {model!r} from {len(t)} samples x {X.shape[1]} dims "
+        f"({', '.join(names)}); segments per dim: {[len(k) for k in model.k]} -> {out}"
+    )
+    if args.plot:
+        r = model.rollout(model.start, dt=float(np.median(np.diff(t))))
+        plot_rollout(Path(args.plot), r, model, names, (t, X))
+        print(f"plot -> {args.plot}")
+    return 0
+
+
+def cmd_rollout(args: argparse.Namespace) -> int:
+    """``psm rollout MODEL [--start ...] [--goal ...] [--plot out.png] [--csv out.csv]``."""
+    model = PhaseSpaceModel.load(Path(args.model))
+    goal = _parse_vector(args.goal, "goal")
+    start = _parse_vector(args.start, "start")
+    r = model.rollout(start, goal=goal, dt=args.dt, max_duration=args.max_duration)
+    names = [f"x{d}" for d in range(model.dim)]
+    print(
+        json.dumps(
+            {
+                "done": r.done,
+                "duration_s": float(r.t[-1]),
+                "final_position": r.x[-1].tolist(),
+                "goal": r.goal[-1].tolist(),
+                "max_abs_acceleration": np.max(np.abs(r.a), axis=0).tolist(),
+            }
+        )
+    )
+    if args.csv:
+        header = ["t"] + [f"{n}{s}" for s in ("", "_v", "_a") for n in names]
+        data = np.column_stack([r.t, r.x, r.v, r.a])
+        np.savetxt(args.csv, data, delimiter=",", header=",".join(header), comments="")
+    if args.plot:
+        plot_rollout(Path(args.plot), r, model, names)
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """``psm demo``: learn from a synthetic 3-D reach and show goal adaptation and a push."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t = np.arange(0.0, 2.0 + 1e-9, 0.002)
+    s = np.clip(t / 2.0, 0, 1)
+    s = 10 * s**3 - 15 * s**4 + 6 * s**5
+    rng = np.random.default_rng(0)
+    X = np.stack([0.4 * s, 0.2 * np.sin(np.pi * s), 0.1 * np.sin(2 * np.pi * s)], axis=1)
+    X = X + rng.normal(0.0, 5e-5, X.shape)
+    model = PhaseSpaceModel.fit(t, X)
+    model.save(out / "model.json")
+    names = ["x", "y", "z"]
+    plot_rollout(out / "reproduction.png", model.rollout(dt=0.002), model, names, (t, X))
+    g0, g1 = model.goal, model.goal + np.array([0.1, -0.08, 0.05])
+    moving = model.rollout(dt=0.002, goal_fn=lambda s: g0 if s < 0.8 else g1)
+    plot_rollout(out / "goal_moved.png", moving, model, names, (t, X))
+
+    def push(s: float, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if round(s / 0.002) == 350:  # one shove at t = 0.7 s
+            v = v.copy()
+            v[0] = -0.5
+        return x, v
+
+    plot_rollout(out / "pushed.png", model.rollout(dt=0.002, disturbance=push), model, names, (t, X))
+    print(f"{model!r}; plots and model written to {out}/")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add ``learn``, ``rollout`` and ``demo`` to the ``psm`` command line."""
+    p = subparsers.add_parser("learn", help="learn a PSM from one demonstration (CSV, NPZ, MCAP)")
+    p.add_argument("demo", help="demonstration file (.csv, .npz or .mcap)")
+    p.add_argument("-o", "--output", default="model.json", help="model file to write (JSON)")
+    p.add_argument("--segments", type=_segments_arg, default="auto",
+                   help="'auto', a number of segments, or comma-separated cut times [s]")
+    p.add_argument("--smoothing", type=float, default=0.02, help="Gaussian smoothing sigma [s]")
+    p.add_argument("--k-fit", choices=("least_squares", "duration"), default="least_squares",
+                   help="how each segment's k is chosen")
+    p.add_argument("--columns", nargs="+", help="CSV columns to learn (default: all but t)")
+    p.add_argument("--topic", help="MCAP: arm-state topic (default <prefix>/arm/state)")
+    p.add_argument("--plot", help="also write a reproduction plot (PNG)")
+    p.set_defaults(func=cmd_learn)
+
+    p = subparsers.add_parser("rollout", help="generate a motion from a learned model")
+    p.add_argument("model", help="model file (JSON) written by 'psm learn'")
+    p.add_argument("--goal", help="goal, comma-separated (default: the demonstration's)")
+    p.add_argument("--start", help="start position, comma-separated (default: the demonstration's)")
+    p.add_argument("--dt", type=float, default=0.002, help="control period [s]")
+    p.add_argument("--max-duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--plot", help="write position and phase-space plots (PNG)")
+    p.add_argument("--csv", help="write the rollout (t, x, v, a) as CSV")
+    p.set_defaults(func=cmd_rollout)
+
+    p = subparsers.add_parser("demo", help="learn -> rollout demo writing plots (no bus needed)")
+    p.add_argument("--out", default="out/demo", help="output folder")
+    p.set_defaults(func=cmd_demo)

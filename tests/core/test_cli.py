@@ -1,0 +1,66 @@
+"""``psm learn`` / ``psm rollout`` / ``psm demo`` through the real entry point (subprocess)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def run_psm(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args], capture_output=True, text=True,
+        timeout=120, cwd=cwd,
+    )
+
+
+def test_learn_from_csv_then_rollout_to_a_new_goal(tmp_path: Path, reach_demo) -> None:
+    t, X = reach_demo
+    csv_path = tmp_path / "demo.csv"
+    np.savetxt(csv_path, np.column_stack([t, X]), delimiter=",", header="t,x,y,z", comments="")
+    model_path = tmp_path / "model.json"
+    learned = run_psm("learn", str(csv_path), "-o", str(model_path), "--plot", str(tmp_path / "r.png"))
+    assert learned.returncode == 0, learned.stderr
+    assert model_path.exists() and (tmp_path / "r.png").stat().st_size > 10_000
+    out = run_psm(
+        "rollout", str(model_path), "--goal", "0.5,0.1,0.05", "--csv", str(tmp_path / "r.csv"),
+        "--plot", str(tmp_path / "p.png"),
+    )
+    assert out.returncode == 0, out.stderr
+    summary = json.loads(out.stdout)
+    assert summary["done"] is True
+    np.testing.assert_allclose(summary["final_position"], [0.5, 0.1, 0.05], atol=1e-4)
+    rows = np.loadtxt(tmp_path / "r.csv", delimiter=",", skiprows=1)
+    assert rows.shape[1] == 1 + 9
+
+
+def test_learn_from_npz_with_uniform_segments(tmp_path: Path, reach_demo) -> None:
+    t, X = reach_demo
+    np.savez(tmp_path / "demo.npz", t=t, X=X)
+    r = run_psm("learn", str(tmp_path / "demo.npz"), "-o", str(tmp_path / "m.json"), "--segments", "5")
+    assert r.returncode == 0, r.stderr
+    data = json.loads((tmp_path / "m.json").read_text())
+    assert data["format"] == "psm-model" and len(data["dimensions"][0]["k"]) == 5
+
+
+def test_bad_input_is_one_clear_line(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,x\n0,0\n1,nan\n")
+    r = run_psm("learn", str(bad), "-o", str(tmp_path / "m.json"))
+    assert r.returncode == 2
+    assert r.stderr.count("\n") == 1 and "error" in r.stderr
+    assert "Traceback" not in r.stderr
+    r = run_psm("learn", str(tmp_path / "missing.csv"))
+    assert r.returncode == 2 and "no such file" in r.stderr
+    r = run_psm("learn", str(tmp_path / "demo.txt"))
+    assert r.returncode == 2
+
+
+def test_demo_writes_plots(tmp_path: Path) -> None:
+    r = run_psm("demo", "--out", str(tmp_path / "demo"))
+    assert r.returncode == 0, r.stderr
+    for name in ("model.json", "reproduction.png", "goal_moved.png", "pushed.png"):
+        assert (tmp_path / "demo" / name).exists()

@@ -1,0 +1,254 @@
+"""The learned model in motion: reproduction, generalisation, perturbations, persistence."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from psm import ModelFileError, ParameterError, PhaseSpaceModel, ShapeError
+from psm.controller import MODE_STOP, MODE_WRONG_WAY
+from psm.fitting import smooth, validate_demonstration
+
+DT = 0.002
+
+
+def resample(t_ref: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """x (N, D) on t, linearly interpolated on t_ref (held at the ends)."""
+    return np.stack([np.interp(t_ref, t, x[:, d]) for d in range(x.shape[1])], axis=1)
+
+
+@pytest.fixture
+def model(reach_demo) -> PhaseSpaceModel:
+    t, X = reach_demo
+    return PhaseSpaceModel.fit(t, X)
+
+
+def demo_accel_max(t: np.ndarray, X: np.ndarray) -> float:
+    demo = smooth(*validate_demonstration(t, X), 0.02)
+    return float(np.max(np.abs(demo.a)))
+
+
+@pytest.mark.parametrize(("k_fit", "rel_rmse"), [("least_squares", 0.015), ("duration", 0.005)])
+def test_reproduces_its_own_demonstration(reach_demo, k_fit: str, rel_rmse: float) -> None:
+    t, X = reach_demo
+    model = PhaseSpaceModel.fit(t, X, k_fit=k_fit)
+    r = model.rollout(dt=DT)
+    assert r.done
+    rng = np.ptp(X, axis=0)
+    rmse = np.sqrt(np.mean((resample(t, r.t, r.x) - X) ** 2, axis=0))
+    assert np.all(rmse < rel_rmse * np.max(rng)), rmse  # relative to the reach
+    assert abs(r.t[-1] - t[-1]) < 0.05 * t[-1]  # same duration within 5 %
+    np.testing.assert_allclose(r.x[-1], X[-1], atol=model.parameters.position_tolerance)
+    assert np.all(np.abs(r.v[-1]) <= model.parameters.velocity_tolerance)
+
+
+def test_hits_every_demonstrated_via_point_velocity(model: PhaseSpaceModel) -> None:
+    r = model.rollout(dt=DT, sync_gain=0.0)
+    for d, vp in enumerate(model.via_points):
+        positions = model.goal[d] + vp.position
+        direction = np.sign(np.diff(vp.position))
+        for i in range(1, len(positions) - 1):
+            if vp.velocity[i] == 0.0:
+                continue  # turning points: v = 0 where the motion reverses, checked below
+            # first sample at or past via-point i while in segment i-1 or i
+            seg = r.segment[:, d]
+            mask = (seg >= i - 1) & ((r.x[:, d] - positions[i]) * direction[i - 1] >= 0)
+            n = int(np.argmax(mask))
+            assert mask[n]
+            scale = max(abs(vp.velocity[i]), 0.02)
+            assert r.v[n, d] == pytest.approx(vp.velocity[i], abs=0.05 * scale + 2 * DT * 5.0)
+        # reversals happen at the via-points with v = 0
+        turns = [i for i in range(1, len(positions) - 1) if vp.velocity[i] == 0.0]
+        for i in turns:
+            assert np.min(np.abs(r.x[:, d] - positions[i])) < 1e-3
+
+
+def test_generalises_to_a_new_goal_and_start(reach_demo, model: PhaseSpaceModel) -> None:
+    t, X = reach_demo
+    goal = model.goal + np.array([0.1, -0.05, 0.08])
+    start = model.start + np.array([-0.05, 0.03, 0.02])
+    r = model.rollout(start, goal=goal, dt=DT)
+    assert r.done
+    np.testing.assert_allclose(r.x[-1], goal, atol=model.parameters.position_tolerance)
+    assert np.max(np.abs(r.a)) < 3.0 * demo_accel_max(t, X)
+    # the phase-space structure moves with the goal: every reversal of the demonstration
+    # (a via-point with v = 0) is reached at the same place relative to the new goal
+    for d, vp in enumerate(model.via_points):
+        for i in range(1, len(vp.position) - 1):
+            if vp.velocity[i] == 0.0:
+                assert np.min(np.abs(r.x[:, d] - (goal[d] + vp.position[i]))) < 1e-3
+
+
+def test_goal_moved_mid_motion_converges_with_continuous_velocity(
+    reach_demo, model: PhaseSpaceModel
+) -> None:
+    t, X = reach_demo
+    g0 = model.goal
+    g1 = g0 + np.array([0.15, 0.1, -0.05])
+    r = model.rollout(dt=DT, goal_fn=lambda s: g0 if s < 0.8 else g1)
+    assert r.done
+    np.testing.assert_allclose(r.x[-1], g1, atol=model.parameters.position_tolerance)
+    # velocity is continuous: per-step velocity change is bounded by the acceleration
+    dv = np.abs(np.diff(r.v, axis=0))
+    assert np.all(dv <= np.abs(r.a[:-1]) * DT + 1e-12)
+    assert np.max(np.abs(r.a)) < 5.0 * demo_accel_max(t, X)
+
+
+def test_goal_moving_continuously_is_tracked(model: PhaseSpaceModel) -> None:
+    g0 = model.goal
+
+    def goal_fn(s: float) -> np.ndarray:
+        u = min(s, 2.0)  # moves along a curve for 2 s, then stays
+        return g0 + 0.05 * np.array([math.sin(2 * u), math.cos(2 * u) - 1.0, 0.5 * u])
+
+    r = model.rollout(dt=DT, goal_fn=goal_fn, max_duration=8.0)
+    assert r.done
+    np.testing.assert_allclose(r.x[-1], goal_fn(10.0), atol=model.parameters.position_tolerance)
+    assert np.max(np.abs(r.a)) < 10.0
+
+
+def test_push_against_the_motion_recovers(reach_demo, model: PhaseSpaceModel) -> None:
+    t, X = reach_demo
+
+    def push(s: float, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if 0.7 <= s < 0.7 + DT / 2:
+            v = v.copy()
+            v[0] = -0.6  # shoved backwards along x at 0.6 m/s
+        return x, v
+
+    ctrl_modes = []
+    r = model.rollout(dt=DT, disturbance=push)
+    assert r.done
+    np.testing.assert_allclose(r.x[-1], model.goal, atol=model.parameters.position_tolerance)
+    # the wrong-direction rule (eq. 10) applied a constant acceleration m towards the via-point
+    i = round(0.7 / DT)
+    assert r.a[i, 0] == pytest.approx(model.parameters.wrong_way_accel[0])
+    assert np.max(np.abs(r.a)) <= max(3.0 * demo_accel_max(t, X), model.parameters.wrong_way_accel[0])
+    del ctrl_modes
+
+
+def test_wrong_way_mode_reported_by_the_controller(model: PhaseSpaceModel) -> None:
+    ctrl = model.controller()
+    a = ctrl.step(model.start, np.array([-0.5, 0.0, 0.0]), DT)
+    assert ctrl.modes[0] == MODE_WRONG_WAY
+    assert a[0] == pytest.approx(model.parameters.wrong_way_accel[0])
+
+
+def test_synchronisation_pulls_completion_times_together(model: PhaseSpaceModel) -> None:
+    """Hold x back for a while: with eq. 14 the other dimensions wait for it."""
+
+    def hold_x(s: float, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if s < 0.5:
+            x = x.copy()
+            v = v.copy()
+            x[0] = model.start[0]
+            v[0] = 0.0
+        return x, v
+
+    def finish_times(r) -> np.ndarray:
+        err = np.abs(r.x - model.goal)
+        return np.array([r.t[np.flatnonzero(err[:, d] > 2e-3)[-1]] for d in range(3)])
+
+    with_sync = finish_times(model.rollout(dt=DT, disturbance=hold_x))
+    without = finish_times(model.rollout(dt=DT, disturbance=hold_x, sync_gain=0.0))
+    assert np.ptp(with_sync) < 0.6 * np.ptp(without)
+
+
+def test_collision_stop_and_resume(model: PhaseSpaceModel) -> None:
+    ctrl = model.controller()
+    x, v = model.start.copy(), np.zeros(3)
+    x_ob = model.start[0] + 0.15
+    ctrl.request_stop(0, x_ob)
+    max_x = -np.inf
+    for _ in range(1500):
+        a = ctrl.step(x, v, DT)
+        x = x + v * DT + 0.5 * a * DT * DT
+        v = v + a * DT
+        max_x = max(max_x, x[0])
+    assert ctrl.modes[0] == MODE_STOP
+    assert max_x <= x_ob + 1e-6
+    assert abs(v[0]) < 1e-3
+    ctrl.clear_stops()
+    for _ in range(3000):
+        a = ctrl.step(x, v, DT)
+        x = x + v * DT + 0.5 * a * DT * DT
+        v = v + a * DT
+        if ctrl.done:
+            break
+    assert ctrl.done
+    np.testing.assert_allclose(x, model.goal, atol=model.parameters.position_tolerance)
+
+
+def test_time_to_go_counts_down(model: PhaseSpaceModel) -> None:
+    ctrl = model.controller()
+    x, v = model.start.copy(), np.zeros(3)
+    ttg = []
+    for _ in range(600):
+        a = ctrl.step(x, v, DT)
+        ttg.append(ctrl.time_to_go.max())
+        x = x + v * DT + 0.5 * a * DT * DT
+        v = v + a * DT
+    ttg = np.array(ttg)
+    assert ttg[0] == pytest.approx(model.duration, rel=0.05)
+    # counts down at roughly real time (within 20 %) while the motion runs
+    slope = np.polyfit(np.arange(ttg.size) * DT, ttg, 1)[0]
+    assert -1.2 < slope < -0.8
+
+
+def test_one_dimensional_demonstration() -> None:
+    t = np.linspace(0, 1, 501)
+    x = 0.3 * (1 - np.cos(np.pi * t)) / 2
+    model = PhaseSpaceModel.fit(t, x)
+    assert model.dim == 1
+    r = model.rollout(dt=DT)
+    assert r.done and r.x[-1, 0] == pytest.approx(0.3, abs=1e-4)
+
+
+def test_bad_arguments_raise_clear_errors(model: PhaseSpaceModel) -> None:
+    with pytest.raises(ShapeError, match=r"goal must have shape \(3,\)"):
+        model.rollout(goal=[1.0, 2.0])
+    with pytest.raises(ShapeError, match="x0"):
+        model.rollout(x0=[np.nan, 0, 0])
+    with pytest.raises(ParameterError, match="dt"):
+        model.rollout(dt=0.0)
+    ctrl = model.controller()
+    with pytest.raises(ShapeError):
+        ctrl.set_goal(np.zeros(4))
+    with pytest.raises(ShapeError):
+        ctrl.step(np.zeros(2), np.zeros(2), DT)
+    with pytest.raises(ParameterError):
+        ctrl.step(np.zeros(3), np.zeros(3), -1.0)
+
+
+def test_save_load_round_trip_gives_identical_rollouts(tmp_path, model: PhaseSpaceModel) -> None:
+    path = tmp_path / "model.json"
+    model.save(path)
+    loaded = PhaseSpaceModel.load(path)
+    assert loaded.to_dict() == model.to_dict()
+    goal = model.goal + 0.05
+    a = model.rollout(goal=goal, dt=DT)
+    b = loaded.rollout(goal=goal, dt=DT)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v) and np.array_equal(a.t, b.t)
+
+
+def test_load_rejects_bad_files(tmp_path, model: PhaseSpaceModel) -> None:
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(ModelFileError, match="not valid JSON"):
+        PhaseSpaceModel.load(bad)
+    data = model.to_dict()
+    data["version"] = 99
+    bad.write_text(json.dumps(data))
+    with pytest.raises(ModelFileError, match="version"):
+        PhaseSpaceModel.load(bad)
+    data = model.to_dict()
+    del data["dimensions"][0]["k"]
+    bad.write_text(json.dumps(data))
+    with pytest.raises(ModelFileError, match="invalid model file"):
+        PhaseSpaceModel.load(bad)
+    bad.write_text(json.dumps({"format": "something-else"}))
+    with pytest.raises(ModelFileError, match="not a PSM model"):
+        PhaseSpaceModel.load(bad)
