@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter1d
 
 from psm.errors import DemonstrationError, ParameterError
-from psm.pstf import k_for_duration, time_to_reach
+from psm.pstf import coefficient_c, k_for_duration, k_limit, propagate, time_to_reach
 
 #: Fewest samples a demonstration may have.
 MIN_SAMPLES = 8
@@ -177,6 +177,19 @@ class _PrefixSums:
         self.saa = np.concatenate([zero, np.cumsum(a * a)])
         self.sxa = np.concatenate([zero, np.cumsum(x * a)])
 
+    def slope(self, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float) -> float:
+        """Unclamped least-squares ``k`` [1/s²] over samples ``i..j`` with the given end states."""
+        n = j - i + 1
+        delta = x_n - x_c
+        if delta == 0.0:
+            return -math.inf
+        c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
+        m = 0.5 * (x_c + x_n)
+        sx = self.sx[j + 1] - self.sx[i]
+        num = self.sxa[j + 1] - self.sxa[i] - m * (self.sa[j + 1] - self.sa[i]) - c0 * sx + n * c0 * m
+        den = self.sxx[j + 1] - self.sxx[i] - 2.0 * m * sx + n * m * m
+        return float(num / den) if den > 0.0 else -math.inf
+
     def fit(
         self,
         i: NDArray,
@@ -211,73 +224,110 @@ class _PrefixSums:
         return k, np.maximum(sse, 0.0)
 
 
-def acceleration_noise_variance(a: NDArray, width: int) -> float:
-    """Variance [unit²/s⁴] of the fast, zero-mean part of an acceleration ``a (T,)``: what is left
-    after a further Gaussian smoothing over ``width`` samples (a robust, median-based estimate)."""
-    fast = a - gaussian_filter1d(a, max(float(width), 1.0), mode="nearest")
-    mad = float(np.median(np.abs(fast - np.median(fast))))
-    return (1.4826 * mad) ** 2
-
-
 def _segment_kappa(delta: NDArray, duration: NDArray, min_speed_ratio: float) -> NDArray:
     """Stability margin ``(2μ/T)²`` [1/s²] of segments lasting ``duration`` [s] in the demo."""
     return (2.0 * min_speed_ratio / np.maximum(duration, 1e-12)) ** 2 * (delta != 0.0)
 
 
+class _Segmenter:
+    """Fits one segment of one dimension between two sample indices (inclusive).
+
+    ``x (T,)`` smoothed positions, ``v_knot (T,)`` velocities to use when a sample is a via-point
+    (zero at reversals and at the end), ``sums`` prefix sums of ``x`` and the acceleration.
+    """
+
+    def __init__(
+        self, t: NDArray, x: NDArray, v_knot: NDArray, dt: float, sums: _PrefixSums,
+        min_speed_ratio: float, k_fit: str,
+    ) -> None:
+        self.t, self.x, self.v_knot, self.dt = t, x, v_knot, dt
+        self.sums, self.min_speed_ratio, self.k_fit = sums, min_speed_ratio, k_fit
+        self._slopes: dict[tuple[int, int, float, float], float] = {}
+
+    def boundary(self, lo: int, hi: int) -> tuple[float, float, float, float]:
+        """``(x_c, v_c, x_n, v_n)``; a knot velocity pointing against the segment (noise) is 0."""
+        x_c, x_n = float(self.x[lo]), float(self.x[hi])
+        v_c, v_n = float(self.v_knot[lo]), float(self.v_knot[hi])
+        delta = x_n - x_c
+        return x_c, (v_c if v_c * delta >= 0.0 else 0.0), x_n, (v_n if v_n * delta >= 0.0 else 0.0)
+
+    def kappa(self, lo: int, hi: int) -> float:
+        """Stability margin ``(2μ/T)²`` [1/s²] of the segment."""
+        if self.x[hi] == self.x[lo]:
+            return 0.0
+        return (2.0 * self.min_speed_ratio / ((hi - lo) * self.dt)) ** 2
+
+    def slope(self, lo: int, hi: int) -> float:
+        """The segment's ``k`` [1/s²]: least squares (clamped) or the demonstrated duration."""
+        key = (lo, hi, float(self.v_knot[lo]), float(self.v_knot[hi]))
+        if key not in self._slopes:
+            self._slopes[key] = self._slope(lo, hi)
+        return self._slopes[key]
+
+    def _slope(self, lo: int, hi: int) -> float:
+        x_c, v_c, x_n, v_n = self.boundary(lo, hi)
+        kap = self.kappa(lo, hi)
+        k_cap = k_limit(v_c, v_n, x_n - x_c, kap)
+        if self.k_fit == "duration":
+            return k_for_duration(x_c, v_c, x_n, v_n, (hi - lo) * self.dt, k_cap)
+        return min(self.sums.slope(lo, hi, x_c, v_c, x_n, v_n), k_cap)
+
+    def deviation(self, lo: int, hi: int) -> float:
+        """Largest |PSTF − demonstration| [unit] over the segment's samples, the PSTF started at the
+        segment's first via-point at its time (timing drift inside the segment counts)."""
+        x_c, v_c, x_n, v_n = self.boundary(lo, hi)
+        k = self.slope(lo, hi)
+        c = coefficient_c(x_c, v_c, x_n, v_n, k)
+        # At most ~64 evenly spaced samples: the deviation is smooth at the sample scale.
+        idx = np.arange(lo, hi + 1, max(1, (hi - lo) // 64))
+        elapsed = self.t[idx] - self.t[lo]
+        x_model, _ = propagate(elapsed, x_c, v_c, k, c)
+        # Past its arrival the PSTF would continue; the chain moves on to the next segment.
+        x_model = np.where(elapsed <= time_to_reach(x_c, v_c, x_n, v_n, k), x_model, x_n)
+        return float(np.max(np.abs(x_model - self.x[idx])))
+
+    def split_sse(self, lo: int, hi: int, cand: NDArray) -> NDArray:
+        """Residual sums of squares of the acceleration line fits of ``lo..c`` plus ``c..hi`` for every
+        candidate cut ``c`` in ``cand`` (one vectorised evaluation)."""
+        n_c = cand.size
+        starts = np.concatenate([np.full(n_c, lo), cand])
+        ends = np.concatenate([cand, np.full(n_c, hi)])
+        kap = _segment_kappa(self.x[ends] - self.x[starts], (ends - starts) * self.dt, self.min_speed_ratio)
+        _, sse = self.sums.fit(starts, ends, self.x, self.v_knot, kap, -kap)
+        return sse[:n_c] + sse[n_c:]
+
+
 def auto_cuts(
     cuts: list[int],
-    x: NDArray,
-    v: NDArray,
-    a: NDArray,
-    dt: float,
+    segmenter: _Segmenter,
     tolerance: float,
     min_samples: int,
     min_delta: float,
     max_segments: int,
-    min_speed_ratio: float,
-    sums: _PrefixSums,
-    noise_var: float = 0.0,
 ) -> list[int]:
     """Refine ``cuts`` (sorted sample indices including both ends) by top-down splitting.
 
-    ``tolerance`` [unit] is a position error budget. A segment of duration ``T`` whose RMS
-    acceleration residual is ``e`` deviates in position by about ``e T²/8`` (an acceleration error
-    acting between two pinned ends), so a segment is split while ``e T²/8 > tolerance``, where
-    ``e² = max(mean squared residual − noise_var, 0)``: the acceleration noise ``noise_var``
-    [unit²/s⁴] of the demonstration is zero-mean and does not bend the path, so it is not fitted.
-    The worst segment (largest ``e T²/8``) is split at the sample that minimises the two halves'
-    total residual, subject to each half having at least ``min_samples`` samples and moving at
-    least ``min_delta`` [unit], until none is over budget or ``max_segments`` exist. Velocity sign
-    changes never fall inside a segment because the turning points are already cuts.
+    ``tolerance`` [unit] is a position budget: a segment is split while its PSTF, started at the
+    segment's first via-point, deviates from the (smoothed) demonstration by more than that at any
+    sample (:meth:`_Segmenter.deviation`). Judging positions, not accelerations, makes the criterion
+    blind to zero-mean acceleration noise, which bends no path. The worst segment is split at the
+    sample that minimises the two halves' residual in the position–acceleration plane (O(1) per
+    candidate from prefix sums), each half having at least ``min_samples`` samples and moving at
+    least ``min_delta`` [unit], until every segment is within budget or ``max_segments`` exist.
+    Velocity sign changes never fall inside a segment: the reversals are cuts already.
     """
+    x = segmenter.x
     cuts = sorted(set(cuts))
-    seg_sse: dict[int, float] = {}
+    error = {lo: segmenter.deviation(lo, hi) for lo, hi in itertools.pairwise(cuts)}
     blocked: set[int] = set()
-
-    def sse_of(lo: int, hi: int) -> float:
-        i = np.array([lo])
-        j = np.array([hi])
-        kap = _segment_kappa(x[j] - x[i], (j - i) * dt, min_speed_ratio)
-        _, sse = sums.fit(i, j, x, v, kap, -kap)
-        return float(sse[0])
-
-    for lo, hi in itertools.pairwise(cuts):
-        seg_sse[lo] = sse_of(lo, hi)
     while len(cuts) - 1 < max_segments:
         worst, worst_err = -1, tolerance
         for idx, lo in enumerate(cuts[:-1]):
-            if lo in blocked:
-                continue
-            hi = cuts[idx + 1]
-            duration = (hi - lo) * dt
-            excess = max(seg_sse[lo] / (hi - lo + 1) - noise_var, 0.0)
-            err = math.sqrt(excess) * duration * duration / 8.0
-            if err > worst_err:
-                worst, worst_err = idx, err
+            if lo not in blocked and error[lo] > worst_err:
+                worst, worst_err = idx, error[lo]
         if worst < 0:
             break
         lo, hi = cuts[worst], cuts[worst + 1]
-        worst_sse = seg_sse[lo]
         cand = np.arange(lo + min_samples, hi - min_samples + 1)
         if cand.size:
             ok = (np.abs(x[cand] - x[lo]) >= min_delta) & (np.abs(x[hi] - x[cand]) >= min_delta)
@@ -285,24 +335,12 @@ def auto_cuts(
         if cand.size == 0:
             blocked.add(lo)
             continue
-        # Thin the candidates to at most ~256 evenly spaced samples: O(1) fits each.
-        if cand.size > 256:
-            cand = cand[:: math.ceil(cand.size / 256)]
-        los = np.full(cand.shape, lo)
-        his = np.full(cand.shape, hi)
-        kap_l = _segment_kappa(x[cand] - x[lo], (cand - lo) * dt, min_speed_ratio)
-        kap_r = _segment_kappa(x[hi] - x[cand], (hi - cand) * dt, min_speed_ratio)
-        _, sse_l = sums.fit(los, cand, x, v, kap_l, -kap_l)
-        _, sse_r = sums.fit(cand, his, x, v, kap_r, -kap_r)
-        total = sse_l + sse_r
-        best = int(np.argmin(total))
-        if not total[best] < worst_sse:
-            blocked.add(lo)
-            continue
-        s = int(cand[best])
+        if cand.size > 128:  # at most ~128 evenly spaced candidates
+            cand = cand[:: math.ceil(cand.size / 128)]
+        s = int(cand[int(np.argmin(segmenter.split_sse(lo, hi, cand)))])
         cuts.insert(worst + 1, s)
-        seg_sse[lo] = float(sse_l[best])
-        seg_sse[s] = float(sse_r[best])
+        error[lo] = segmenter.deviation(lo, s)
+        error[s] = segmenter.deviation(s, hi)
     return cuts
 
 
@@ -349,15 +387,18 @@ def fit_dimension(
         )
     turns = turning_points(x, hold_tolerance)
     fixed = {0, T - 1, *turns}
-    sums = _PrefixSums(x, a)
+    # Motions start and end at rest (a robot starts a skill standing still; a demonstration's
+    # first and last velocities are sensor noise around zero), and reverse at rest.
+    v_knot = v.copy()
+    v_knot[turns] = 0.0
+    v_knot[0] = 0.0
+    v_knot[-1] = 0.0
+    segmenter = _Segmenter(demo_t, x, v_knot, dt, _PrefixSums(x, a), min_speed_ratio, k_fit)
     if isinstance(segments, str):
         if segments != "auto":
             raise ParameterError(f"segments must be 'auto', an int or cut times, got {segments!r}")
         cuts = _merge_short(sorted(fixed), fixed, x, hold_tolerance)
-        cuts = auto_cuts(
-            cuts, x, v, a, dt, auto_tolerance, min_segment_samples, hold_tolerance,
-            max_segments, min_speed_ratio, sums, acceleration_noise_variance(a, 5 * min_segment_samples),
-        )
+        cuts = auto_cuts(cuts, segmenter, auto_tolerance, min_segment_samples, hold_tolerance, max_segments)
     else:
         if isinstance(segments, int | np.integer):
             if segments < 1:
@@ -370,29 +411,16 @@ def fit_dimension(
         extra = {round(tc / dt) for tc in times}
         cuts = _merge_short(sorted(fixed | extra), fixed, x, hold_tolerance)
     cut_idx = np.asarray(cuts, dtype=np.int64)
+    bounds = [segmenter.boundary(lo, hi) for lo, hi in itertools.pairwise(cuts)]
     knots = x[cut_idx].copy()
-    vel = v[cut_idx].copy()
-    vel[0] = v[0]
-    vel[-1] = 0.0
-    for p in turns:
-        vel[cut_idx == p] = 0.0
-    # A knot velocity must point along the segments it joins (noise can flip a near-zero one).
-    direction = np.sign(np.diff(knots))
-    vel[:-1] = np.where(vel[:-1] * direction < 0.0, 0.0, vel[:-1])
-    vel[1:] = np.where(vel[1:] * direction < 0.0, 0.0, vel[1:])
-    i, j = cut_idx[:-1], cut_idx[1:]
-    delta = knots[1:] - knots[:-1]
-    kappa = _segment_kappa(delta, (j - i) * dt, min_speed_ratio)
-    # Fit on the knots' (possibly zeroed) velocities so c₀ is the one the controller will use.
-    v_k = v.copy()
-    v_k[cut_idx] = vel
-    k, _ = sums.fit(i, j, x, v_k, kappa, -kappa)
-    if k_fit == "duration":
-        cap = ((np.abs(vel[:-1]) + np.abs(vel[1:])) / delta) ** 2 - kappa
-        k = np.array([
-            k_for_duration(knots[s], vel[s], knots[s + 1], vel[s + 1], (j[s] - i[s]) * dt, cap[s])
-            for s in range(k.size)
-        ])
+    # A via-point's velocity must suit both segments it joins (noise can flip a near-zero one).
+    vel = np.array([b[1] for b in bounds] + [0.0])
+    vel[1:-1] = np.where(vel[1:-1] * np.array([b[3] for b in bounds[:-1]]) > 0.0, vel[1:-1], 0.0)
+    kappa = np.array([segmenter.kappa(lo, hi) for lo, hi in itertools.pairwise(cuts)])
+    v_fit = segmenter.v_knot.copy()
+    v_fit[cut_idx] = vel
+    segmenter.v_knot = v_fit
+    k = np.array([segmenter.slope(lo, hi) for lo, hi in itertools.pairwise(cuts)])
     durations = np.array(
         [time_to_reach(knots[s], vel[s], knots[s + 1], vel[s + 1], k[s]) for s in range(k.size)]
     )

@@ -70,7 +70,7 @@ class ModelParameters:
     sync_gain: float
     position_tolerance: float
     velocity_tolerance: float
-    k_fit: str = "least_squares"
+    k_fit: str = "duration"
 
 
 @dataclass
@@ -144,7 +144,7 @@ class PhaseSpaceModel:
         sync_gain: float = 4.0,
         position_tolerance: float = 1e-4,
         velocity_tolerance: float = 1e-3,
-        k_fit: str = "least_squares",
+        k_fit: str = "duration",
     ) -> PhaseSpaceModel:
         """Learn a model from ONE demonstration.
 
@@ -155,7 +155,10 @@ class PhaseSpaceModel:
         ``hold_tolerance``, ``position_tolerance`` and ``velocity_tolerance`` are relative to the
         demonstration's largest range (``position_tolerance=1e-4`` of a 0.5 m reach is 50 µm).
         ``wrong_way_accel`` (``m`` of eq. 10) defaults per dimension to the largest demonstrated
-        |acceleration|. Raises :class:`psm.PSMError` subclasses on invalid input.
+        |acceleration|. ``k_fit``: ``"duration"`` (default) gives each segment the ``k`` whose
+        closed-form duration equals the demonstrated one; ``"least_squares"`` is the paper's
+        least squares in the position–acceleration plane (see docs/psm.md for the comparison).
+        Raises :class:`psm.PSMError` subclasses on invalid input.
         """
         t_arr, X_arr = validate_demonstration(t, X)
         for name, value in (

@@ -91,27 +91,29 @@ def kinetic_energy(
     return (1.0 - s) * e_c + s * e_n - 0.5 * k * delta * delta * s * (1.0 - s)
 
 
-def _cs_g(z: NDArray[np.float64]) -> tuple[NDArray, NDArray, NDArray]:
+def _cs_g(z: NDArray[np.float64], k: float) -> tuple[NDArray, NDArray, NDArray]:
     """Return ``C(z), S(z), G(z)`` with ``C = cosh √z``, ``S = sinh(√z)/√z``, ``G = (C − 1)/z``
-    (their analytic continuations for ``z < 0``: cos, sin), stable through ``z = 0``."""
-    c = np.empty_like(z)
-    s = np.empty_like(z)
-    g = np.empty_like(z)
+    (their analytic continuations cos, sin for ``z < 0``) for ``z = k t²`` (one sign, that of
+    ``k``), using series expansions where ``|z|`` is small so the forms stay exact through 0."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if k > 0.0:
+            r = np.sqrt(z)
+            c = np.cosh(r)
+            s = np.sinh(r) / r
+            g = (c - 1.0) / z
+        elif k < 0.0:
+            r = np.sqrt(-z)
+            c = np.cos(r)
+            s = np.sin(r) / r
+            g = (1.0 - c) / (r * r)
+        else:
+            c, s, g = np.ones_like(z), np.ones_like(z), np.full_like(z, 0.5)
     small = np.abs(z) < _Z_SERIES
-    pos = (z > 0) & ~small
-    neg = (z < 0) & ~small
-    zs = z[small]
-    c[small] = 1.0 + zs / 2.0 + zs * zs / 24.0
-    s[small] = 1.0 + zs / 6.0 + zs * zs / 120.0
-    g[small] = 0.5 + zs / 24.0 + zs * zs / 720.0
-    r = np.sqrt(z[pos])
-    c[pos] = np.cosh(r)
-    s[pos] = np.sinh(r) / r
-    g[pos] = (c[pos] - 1.0) / z[pos]
-    r = np.sqrt(-z[neg])
-    c[neg] = np.cos(r)
-    s[neg] = np.sin(r) / r
-    g[neg] = (1.0 - c[neg]) / (r * r)
+    if k != 0.0 and small.any():
+        zs = z[small]
+        c[small] = 1.0 + zs / 2.0 + zs * zs / 24.0
+        s[small] = 1.0 + zs / 6.0 + zs * zs / 120.0
+        g[small] = 0.5 + zs / 24.0 + zs * zs / 720.0
     return c, s, g
 
 
@@ -126,7 +128,8 @@ def propagate(
     """
     t = np.asarray(t, dtype=float)
     a_c = k * x_c + c
-    c_, s_, g_ = _cs_g(k * t * t)
+    c_, s_, g_ = _cs_g(np.atleast_1d(k * t * t), k)
+    c_, s_, g_ = (q.reshape(t.shape) for q in (c_, s_, g_))
     x = x_c + v_c * t * s_ + a_c * t * t * g_
     v = v_c * c_ + a_c * t * s_
     return x, v
@@ -193,7 +196,8 @@ def k_for_duration(
     k_low = min(-4.0 * (math.pi / duration) ** 2, k_high - 1.0)
     while time_to_reach(x_c, v_c, x_n, v_n, k_low) >= duration:
         k_low *= 4.0
+    # rtol 1e-9 on k gives the duration to far better than a sample period.
     return float(
-        brentq(lambda k: time_to_reach(x_c, v_c, x_n, v_n, k) - duration, k_low, k_high, xtol=1e-9,
-               rtol=1e-10)
+        brentq(lambda k: time_to_reach(x_c, v_c, x_n, v_n, k) - duration, k_low, k_high, xtol=1e-12,
+               rtol=1e-9)
     )

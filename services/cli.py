@@ -19,6 +19,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.learn_cli",
     "services.bus.cli",
     "services.arm.cli",
+    "services.goal_tracker.cli",
 )
 
 

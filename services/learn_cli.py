@@ -206,7 +206,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--segments", type=_segments_arg, default="auto",
                    help="'auto', a number of segments, or comma-separated cut times [s]")
     p.add_argument("--smoothing", type=float, default=0.02, help="Gaussian smoothing sigma [s]")
-    p.add_argument("--k-fit", choices=("least_squares", "duration"), default="least_squares",
+    p.add_argument("--k-fit", choices=("duration", "least_squares"), default="duration",
                    help="how each segment's k is chosen")
     p.add_argument("--columns", nargs="+", help="CSV columns to learn (default: all but t)")
     p.add_argument("--topic", help="MCAP: arm-state topic (default <prefix>/arm/state)")

@@ -65,7 +65,7 @@ def test_turning_points_ignore_noise_but_find_reversals() -> None:
 
 def test_least_squares_recovers_the_slope_of_an_exact_pstf() -> None:
     """A demonstration that IS one PSTF (k = -6, ending at rest) is learned back with that k."""
-    x_c, v_c, k = 0.0, 0.2, -6.0
+    x_c, v_c, k = 0.0, 0.0, -6.0  # rest to rest: motions start and end at rest
     x_n0, v_n0 = 0.5, 0.0
     c0 = pstf.coefficient_c(x_c, v_c, x_n0, v_n0, k)
     T0 = pstf.time_to_reach(x_c, v_c, x_n0, v_n0, k)
