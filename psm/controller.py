@@ -13,6 +13,9 @@ pushes, moved starts and moving goals (paper §III-C..F, DESIGN §4):
   ``t_E`` is braked with ``−T v (t_E − t_e)``;
 * **collision stop** (eq. 15): a per-dimension request "stop at x_ob" decelerates with
   ``−v²/(2(x_ob − x))`` while the obstacle lies between the state and the via-point;
+* **saturation**: the segment law (with the synchronisation term) is limited to
+  ``max_acceleration`` per dimension; a state that cannot match a via-point's velocity in time
+  passes it (a non-reversal via-point is skipped when that would take more than ``2 m``);
 * **terminal capture**: within one tick of the goal a critically damped spring holds the goal.
 
 Via-points are stored relative to the goal, so :meth:`PSMController.set_goal` moves all of them at
@@ -74,6 +77,7 @@ class PSMController:
         position_tolerance: float,
         velocity_tolerance: float,
         terminal_omega: float | None = None,
+        max_acceleration: NDArray[np.float64] | None = None,
     ) -> None:
         self._D = len(chains)
         self._chains = chains
@@ -87,6 +91,9 @@ class PSMController:
             for c in chains
         ]
         self._m = [float(m) for m in wrong_way_accel]
+        self._a_max = (
+            [math.inf] * len(chains) if max_acceleration is None else [float(a) for a in max_acceleration]
+        )
         self._sync_gain = float(sync_gain)
         self._pos_tol = float(position_tolerance)
         self._vel_tol = float(velocity_tolerance)
@@ -207,6 +214,16 @@ class PSMController:
             for d in range(D):
                 if braking[d] and t_e[d] < t_big:
                     acc[d] -= gain * vs[d] * (t_big - t_e[d])
+        # The segment law is exact but not gentle: a state pushed right in front of a reversal would
+        # have to stop within millimetres. Saturate it; the state then overshoots the via-point and
+        # the next segment (or eq. 10) brings it back. Collision stops are never saturated.
+        for d in range(D):
+            if self._modes[d] == MODE_SEGMENT:
+                a_max = self._a_max[d]
+                if acc[d] > a_max:
+                    acc[d] = a_max
+                elif acc[d] < -a_max:
+                    acc[d] = -a_max
         return np.array(acc)
 
     def _dimension(self, d: int, x: float, v: float, dt: float) -> tuple[float, float, str]:
@@ -214,8 +231,11 @@ class PSMController:
         chain = self._chains[d]
         g = self._goal[d]
         n = self._n[d]
+        a_max = self._a_max[d]
         if self._terminal[d]:
-            return self._terminal_law(x - g, v, dt), 0.0, MODE_TERMINAL
+            if 2.0 * abs(v) <= a_max * dt * 5.0 and abs(x - g) <= 100.0 * self._pos_tol:
+                return self._terminal_law(x - g, v, dt, a_max), 0.0, MODE_TERMINAL
+            self._terminal[d] = False  # knocked off the goal: the last segment's law takes over
         offsets, dirs, m = chain.offsets, self._dir[d], self._m[d]
         pos_tol = self._pos_tol
         j = self._segment[d]
@@ -236,6 +256,11 @@ class PSMController:
                     continue
             direction = 1.0 if delta > 0.0 else -1.0
             v_along = v * direction
+            if not last and v_n != 0.0 and v_along >= 0.0 and abs(v_n * v_n - v * v) > 4.0 * m * abs(delta):
+                # Matching this via-point's velocity would take more than 2 m (a push along the
+                # motion right before it, say): pass it and aim at the next one instead.
+                j += 1
+                continue
             wrong_way = v_along < 0.0 and -v_along > m * dt
             v_eff = v if v_along >= 0.0 else 0.0  # a wrong-way speed below one tick of m is rest
             if j != self._segment[d]:
@@ -254,14 +279,17 @@ class PSMController:
                 t_seg = time_to_reach(x, v_eff, x_n, v_n, k_eff)
             if t_seg <= dt and not wrong_way:
                 if last:
-                    break
+                    break  # terminal capture (or overshoot), decided below
                 j += 1  # the via-point is reached within this tick
                 continue
             break
         self._segment[d] = j
-        if last and ((abs(delta) <= pos_tol and abs(v) <= self._vel_tol) or t_seg <= dt):
+        # Capture only a state the holding spring can absorb within the acceleration limit (one
+        # that arrives too fast overshoots, and the last segment's law brings it back).
+        slow_enough = 2.0 * abs(v) <= a_max * dt * 5.0
+        if last and ((abs(delta) <= pos_tol and abs(v) <= self._vel_tol) or (t_seg <= dt and slow_enough)):
             self._terminal[d] = True
-            return self._terminal_law(x - g, v, dt), 0.0, MODE_TERMINAL
+            return self._terminal_law(x - g, v, dt, a_max), 0.0, MODE_TERMINAL
         te = t_seg + self._tail[d][j]
         stop = self._stops[d]
         if stop is not None:
@@ -296,8 +324,9 @@ class PSMController:
         a = (v_eff * c_m1 + a_c * dt * s_) / dt + (v_eff - v) / dt
         return a, te, MODE_SEGMENT
 
-    def _terminal_law(self, error: float, v: float, dt: float) -> float:
-        """Critically damped hold of the goal: ``−ω² e − 2ω v`` with ``ω`` = terminal_omega or 0.2/dt."""
+    def _terminal_law(self, error: float, v: float, dt: float, a_max: float) -> float:
+        """Critically damped hold of the goal, ``−ω² e − 2ω v`` (``ω`` = terminal_omega or
+        ``0.2/dt``), limited to ``±a_max``."""
         w = self._terminal_omega if self._terminal_omega is not None else 0.2 / dt
-        return -w * w * error - 2.0 * w * v
+        return max(-a_max, min(a_max, -w * w * error - 2.0 * w * v))
 

@@ -55,6 +55,7 @@ class ModelParameters:
       margin (:func:`psm.pstf.k_limit`);
     * ``wrong_way_accel (D,)``: ``m`` of eq. 10 [unit/s²]; ``sync_gain``: ``T`` of eq. 14 [1/s²];
     * ``position_tolerance`` [unit] and ``velocity_tolerance`` [unit/s] (absolute) for ``done``;
+    * ``max_acceleration (D,)`` [unit/s²]: saturation of the segment law (default 3 ``m``);
     * ``k_fit``: how each segment's ``k`` was chosen: ``"least_squares"`` in the
       position–acceleration plane as in the paper, or ``"duration"``: the ``k`` whose closed-form
       segment time equals the demonstrated one.
@@ -71,6 +72,7 @@ class ModelParameters:
     position_tolerance: float
     velocity_tolerance: float
     k_fit: str = "duration"
+    max_acceleration: list[float] | None = None
 
 
 @dataclass
@@ -145,6 +147,7 @@ class PhaseSpaceModel:
         position_tolerance: float = 1e-4,
         velocity_tolerance: float = 1e-3,
         k_fit: str = "duration",
+        max_acceleration: float | ArrayLike | None = None,
     ) -> PhaseSpaceModel:
         """Learn a model from ONE demonstration.
 
@@ -155,7 +158,8 @@ class PhaseSpaceModel:
         ``hold_tolerance``, ``position_tolerance`` and ``velocity_tolerance`` are relative to the
         demonstration's largest range (``position_tolerance=1e-4`` of a 0.5 m reach is 50 µm).
         ``wrong_way_accel`` (``m`` of eq. 10) defaults per dimension to the largest demonstrated
-        |acceleration|. ``k_fit``: ``"duration"`` (default) gives each segment the ``k`` whose
+        |acceleration|; ``max_acceleration`` (saturation of the segment law, per dimension) to 3 ``m``.
+        ``k_fit``: ``"duration"`` (default) gives each segment the ``k`` whose
         closed-form duration equals the demonstrated one; ``"least_squares"`` is the paper's
         least squares in the position–acceleration plane (see docs/psm.md for the comparison).
         Raises :class:`psm.PSMError` subclasses on invalid input.
@@ -202,6 +206,12 @@ class PhaseSpaceModel:
             m = np.broadcast_to(np.asarray(wrong_way_accel, dtype=float), (D,)).copy()
             if not np.all(np.isfinite(m) & (m > 0)):
                 raise ParameterError("wrong_way_accel must be finite and > 0")
+        if max_acceleration is None:
+            a_max = 3.0 * m
+        else:
+            a_max = np.broadcast_to(np.asarray(max_acceleration, dtype=float), (D,)).copy()
+            if not np.all(a_max > 0):
+                raise ParameterError("max_acceleration must be > 0 (inf disables the saturation)")
         params = ModelParameters(
             smoothing=float(smoothing),
             segments=segments if isinstance(segments, str | int) else [float(s) for s in segments],
@@ -214,6 +224,7 @@ class PhaseSpaceModel:
             position_tolerance=float(position_tolerance) * scale,
             velocity_tolerance=float(velocity_tolerance) * scale,
             k_fit=k_fit,
+            max_acceleration=[float(e) for e in a_max],
         )
         # Goal and start are the demonstrated end points themselves (smoothing biases the ends
         # of a motion that is still settling); via-points are relative to the goal.
@@ -311,9 +322,11 @@ class PhaseSpaceModel:
         gain = self.parameters.sync_gain if sync_gain is None else float(sync_gain)
         if not (math.isfinite(gain) and gain >= 0.0):
             raise ParameterError(f"sync_gain must be a finite number >= 0, got {gain}")
+        a_max = self.parameters.max_acceleration
         return PSMController(
             self._chains, g, m, gain, self.parameters.position_tolerance,
             self.parameters.velocity_tolerance, terminal_omega,
+            None if a_max is None else np.asarray(a_max, dtype=float),
         )
 
     def rollout(

@@ -188,16 +188,33 @@ def k_for_duration(
     interior point) from 0 as ``k → −∞`` to ``∞`` at ``k_max``, so the answer is unique; it is found
     by Brent's method on ``(−4(π/duration)², k_high]`` (at ``−4(π/duration)²`` even a rest-to-rest
     segment takes only ``duration/2``). Returns ``k_high`` when even that is faster than asked.
+    Both velocities must point along ``x_n − x_c`` (or be 0) and ``k_high`` must be below ``k_max``.
     """
     from scipy.optimize import brentq
+
+    delta = x_n - x_c
+    c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
+    t0 = 2.0 * abs(delta) / (abs(v_c) + abs(v_n)) if v_c or v_n else math.inf
+
+    def excess_time(k: float) -> float:
+        # time_to_reach for this fixed, stable segment, without its validity checks (hot loop)
+        if t0 != math.inf and abs(k) * t0 * t0 < K_ZERO_TOL:
+            return t0 - duration
+        a_c = c0 - 0.5 * k * delta
+        a_n = c0 + 0.5 * k * delta
+        if k > 0.0:
+            w = math.sqrt(k)
+            p_c, q_c = a_c / w + v_c, a_c / w - v_c
+            ratio = (a_n / w + v_n) / p_c if abs(p_c) >= abs(q_c) else q_c / (a_n / w - v_n)
+            return (math.log(ratio) / w if ratio > 0.0 else math.inf) - duration
+        w = math.sqrt(-k)
+        dtheta = (math.atan2(-v_n * w, -a_n) - math.atan2(-v_c * w, -a_c)) % (2.0 * math.pi)
+        return (0.0 if dtheta > 1.5 * math.pi else dtheta / w) - duration
 
     if time_to_reach(x_c, v_c, x_n, v_n, k_high) <= duration:
         return k_high
     k_low = min(-4.0 * (math.pi / duration) ** 2, k_high - 1.0)
-    while time_to_reach(x_c, v_c, x_n, v_n, k_low) >= duration:
+    while excess_time(k_low) >= 0.0:
         k_low *= 4.0
     # rtol 1e-9 on k gives the duration to far better than a sample period.
-    return float(
-        brentq(lambda k: time_to_reach(x_c, v_c, x_n, v_n, k) - duration, k_low, k_high, xtol=1e-12,
-               rtol=1e-9)
-    )
+    return float(brentq(excess_time, k_low, k_high, xtol=1e-12, rtol=1e-9))
