@@ -6,7 +6,7 @@ pushes, moved starts and moving goals (paper §III-C..F, DESIGN §4):
 
 * **segment law** (eq. 7 with the corrected eq. 5): towards the next via-point ``(x_n, v_n)`` the
   acceleration is ``c₀ − k Δ/2`` with ``Δ = x_n − x``, ``c₀ = (v_n² − v²)/(2Δ)``; the learned ``k`` is
-  clamped to ``k_max(v, v_n, Δ) − κ`` so a perturbed state never makes the segment unstable;
+  clamped to ``ρ k_max(v, v_n, Δ) − κ`` so a perturbed state never makes the segment unstable;
 * **wrong direction** (eq. 10): a velocity pointing away from ``x_n`` gets a constant acceleration
   ``m`` towards it until it is zero;
 * **synchronisation** (eq. 14): a dimension whose time to completion ``t_e`` is below the largest one
@@ -268,9 +268,17 @@ class PSMController:
             # Clamp k below the stability bound of the measured state. The clamp only tightens
             # within a segment: re-solving from each new state would otherwise ride the bound
             # and creep (the bound rises as the segment progresses).
-            k_eff = min(chain.k[j], k_limit(v_eff, v_n, delta, chain.kappa[j]), self._k_cap[d])
+            k_stable = k_limit(v_eff, v_n, delta, chain.kappa[j])
+            k_eff = min(chain.k[j], k_stable, self._k_cap[d])
             if k_eff < chain.k[j]:
                 self._k_cap[d] = k_eff
+            # Keep the law within the acceleration limit where the via-point allows it: the line
+            # c₀ + k (x − m) peaks at an end, so |k Δ/2| <= a_max − |c₀| bounds it on the segment.
+            # (A steep learned k would otherwise saturate, miss the via-point and, at the goal,
+            # cycle around it.)
+            k_room = 2.0 * (a_max - abs(v_n * v_n - v_eff * v_eff) / (2.0 * abs(delta))) / abs(delta)
+            if k_room > 0.0:
+                k_eff = min(max(k_eff, -k_room), k_room, k_stable)
             if wrong_way:
                 t_stop = -v_along / m
                 x_stop = x + 0.5 * v * t_stop

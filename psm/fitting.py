@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter1d
 
 from psm.errors import DemonstrationError, ParameterError
-from psm.pstf import coefficient_c, k_for_duration, k_limit, propagate, time_to_reach
+from psm.pstf import K_MAX_FRACTION, coefficient_c, k_for_duration, k_limit, propagate, time_to_reach
 
 #: Fewest samples a demonstration may have.
 MIN_SAMPLES = 8
@@ -113,12 +113,24 @@ def validate_demonstration(t: ArrayLike, X: ArrayLike) -> tuple[NDArray, NDArray
 
 
 def smooth(t: NDArray, X: NDArray, sigma: float) -> SmoothedDemo:
-    """Gaussian-kernel smoothing with standard deviation ``sigma`` [s] (0 disables it), then velocity
-    and acceleration by second-order central differences. ``t (T,)`` uniform, ``X (T, D)``."""
+    """Gaussian-kernel smoothing with standard deviation ``sigma`` [s] (0 disables it; the ends are
+    point-reflected so they are not pulled inwards), then velocity and acceleration by second-order
+    central differences.
+    ``t (T,)`` uniform, ``X (T, D)``."""
     if not (sigma >= 0.0 and math.isfinite(sigma)):
         raise ParameterError(f"smoothing must be a finite number of seconds >= 0, got {sigma}")
     dt = float(t[1] - t[0])
-    x = gaussian_filter1d(X, sigma / dt, axis=0, mode="nearest") if sigma > 0 else X.copy()
+    if sigma > 0:
+        # Point-reflect the demonstration about its end samples before filtering: the start and
+        # the goal stay where they were measured and the motion's slope continues through them
+        # (padding with the end value would pull a motion still moving there inwards).
+        pad = min(math.ceil(4.0 * sigma / dt), X.shape[0] - 1)
+        head = 2.0 * X[0] - X[pad:0:-1]
+        tail = 2.0 * X[-1] - X[-2 : -pad - 2 : -1]
+        padded = np.concatenate([head, X, tail])
+        x = gaussian_filter1d(padded, sigma / dt, axis=0, mode="nearest")[pad : pad + X.shape[0]]
+    else:
+        x = X.copy()
     v = np.gradient(x, dt, axis=0)
     a = np.gradient(v, dt, axis=0)
     return SmoothedDemo(t=t, x=x, v=v, a=a, dt=dt)
@@ -201,7 +213,7 @@ class _PrefixSums:
     ) -> tuple[NDArray, NDArray]:
         """Least-squares ``k`` and residual sum of squares of ``a ≈ c₀ + k (x − m)`` over samples
         ``i..j`` (inclusive, arrays of equal shape), with ``c₀, m`` from the end samples and ``k``
-        clamped to ``k_max − kappa``. ``k_rest`` replaces ``k`` where the ends are both at rest and
+        clamped to ``ρ k_max − kappa``. ``k_rest`` replaces ``k`` where the ends are both at rest and
         the clamp leaves no valid slope. Returns ``(k, sse)`` [1/s², unit²/s⁴]."""
         n = (j - i + 1).astype(float)
         sx = self.sx[j + 1] - self.sx[i]
@@ -217,7 +229,7 @@ class _PrefixSums:
         num = sxa - m * sa - c0 * sx + n * c0 * m
         den = sxx - 2.0 * m * sx + n * m * m
         k_ls = num / np.where(den > 0.0, den, 1.0)
-        k_cap = ((np.abs(v_c) + np.abs(v_n)) / safe) ** 2 - kappa
+        k_cap = K_MAX_FRACTION * ((np.abs(v_c) + np.abs(v_n)) / safe) ** 2 - kappa
         k = np.minimum(k_ls, k_cap)
         k = np.where(np.isfinite(k), k, k_rest)
         sse = saa - 2.0 * c0 * sa + n * c0 * c0 - 2.0 * k * num + k * k * den

@@ -29,6 +29,8 @@ from numpy.typing import ArrayLike, NDArray
 #: Below this |k|·T₀² the segment is treated as k = 0 (T₀ = 2|Δ|/(|v_c|+|v_n|)); the relative
 #: error of the k = 0 time formula there is below 1e-9.
 K_ZERO_TOL = 1e-8
+#: Fraction of k_max a segment's k may use (see :func:`k_limit`).
+K_MAX_FRACTION = 0.97
 #: Below this |z| = |k| t² the series expansions of cosh/sinh are used (error < 1e-13).
 _Z_SERIES = 1e-5
 
@@ -60,15 +62,21 @@ def k_max(v_c: float, v_n: float, delta: float) -> float:
 
 
 def k_limit(v_c: float, v_n: float, delta: float, kappa: float) -> float:
-    """The largest ``k`` [1/s²] allowed for a segment: ``k_max − kappa``.
+    """The largest ``k`` [1/s²] allowed for a segment: ``ρ k_max − kappa`` (``ρ`` =
+    :data:`K_MAX_FRACTION`).
 
-    ``kappa ≥ 0`` [1/s²] is the stability margin. With ``kappa = (2μ/T)²`` the kinetic energy is
+    ``ρ < 1`` keeps a segment away from the unstable equilibrium at ``k_max``: there a state that
+    starts at rest escapes exponentially slowly (how the PSM encodes a dimension that waits), so
+    its timing would amplify any perturbation by ``e^{√k t}`` without bound; with ``ρ = 0.97`` a
+    start from rest reaches the via-point within about ``6 Δ/v_n`` (amplification below ~e⁶).
+
+    ``kappa ≥ 0`` [1/s²] is the second margin. With ``kappa = (2μ/T)²`` the kinetic energy is
     kept above the parabola ``2 (μ Δ/T)² · 4s(1−s)`` (``s`` the fraction of the segment done), so
     the speed at the segment's mid-point never drops below ``μ`` times the mean speed ``Δ/T``: the
     segment cannot stall, and a rest-to-rest segment takes ``π T / (2μ)``. Since the kinetic energy
     of a sub-interval is that of the interval, the bound only grows along an unperturbed segment.
     """
-    return k_max(v_c, v_n, delta) - kappa
+    return K_MAX_FRACTION * k_max(v_c, v_n, delta) - kappa
 
 
 def is_stable(v_c: float, v_n: float, delta: float, k: float) -> bool:

@@ -152,9 +152,13 @@ def test_synchronisation_pulls_completion_times_together(model: PhaseSpaceModel)
         err = np.abs(r.x - model.goal)
         return np.array([r.t[np.flatnonzero(err[:, d] > 2e-3)[-1]] for d in range(3)])
 
-    with_sync = finish_times(model.rollout(dt=DT, disturbance=hold_x))
-    without = finish_times(model.rollout(dt=DT, disturbance=hold_x, sync_gain=0.0))
-    assert np.ptp(with_sync) < 0.6 * np.ptp(without)
+    spread = {
+        gain: np.ptp(finish_times(model.rollout(dt=DT, disturbance=hold_x, sync_gain=gain)))
+        for gain in (0.0, model.parameters.sync_gain, 16.0)
+    }
+    assert spread[0.0] > 0.3  # held back 0.5 s, x finishes ~0.5 s after the others without eq. 14
+    assert spread[model.parameters.sync_gain] < 0.7 * spread[0.0]
+    assert spread[16.0] < 0.2 * spread[0.0]
 
 
 def test_collision_stop_and_resume(model: PhaseSpaceModel) -> None:

@@ -9,15 +9,14 @@ from hypothesis import strategies as st
 
 from psm import PhaseSpaceModel
 
-from conftest import minimum_jerk
-
 DT = 0.002
 
 
 @pytest.fixture(scope="module")
 def model() -> PhaseSpaceModel:
     t = np.arange(0.0, 2.0 + 1e-9, DT)
-    s = minimum_jerk(t, 2.0)
+    u = t / 2.0
+    s = 10 * u**3 - 15 * u**4 + 6 * u**5  # minimum-jerk phase
     X = np.stack([0.4 * s, 0.2 * np.sin(np.pi * s), 0.1 * np.sin(2 * np.pi * s)], axis=1)
     return PhaseSpaceModel.fit(t, X)
 
