@@ -26,6 +26,8 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(PY) -m benchmarks.learner
 	$(PY) -m benchmarks.bus
+	$(PY) -m benchmarks.arm
+	$(PY) -m benchmarks.goal_tracker
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache

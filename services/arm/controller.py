@@ -1,0 +1,407 @@
+"""Commands, their validation, the inverse-kinematics controller and the joint-limit clamps.
+
+The controller turns a Cartesian command into joint accelerations (paper Fig. 6)::
+
+    α_des = Kp_R · log(R_ref Rᵀ) + Kd_R · (ω_ref − ω) (+ α_ff)        orientation PD (rad/s²)
+    a     = [ẍ_des; α_des]                                            (6,)
+    q̈_task = J⁺_λ (a − J̇q̇)                                            damped least squares
+    q̈     = q̈_task + (I − J⁺_λ J) (Kp_n (q_posture − q) − Kd_n q̇)     null-space posture
+
+``J⁺_λ = Jᵀ (J Jᵀ + λ² I)⁻¹`` with λ² = 0 away from singularities and growing smoothly to
+``λ_max²`` as the smallest singular value of ``J`` drops below ``ε``. Then :func:`clamp_joint_accel`
+bounds q̈ so that the next state respects the acceleration, velocity and position limits.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+import pinocchio as pin
+from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dpotri as _potri
+
+from services.arm.robot import JointLimits, RobotModel, matrix_from_quat_xyzw
+
+
+class CommandMode(Enum):
+    """What a command asks for."""
+
+    CARTESIAN = "cartesian"  #: EE linear acceleration + orientation reference (IK inside)
+    JOINT = "joint"  #: raw joint accelerations
+
+
+@dataclass
+class Command:
+    """A command for the arm, already decoded from the bus.
+
+    Attributes:
+        tick: tick of the arm state this command answers (echoed from ``ArmState.tick``).
+        mode: :class:`CommandMode`.
+        linear_acceleration: desired EE linear acceleration ``(3,)`` m/s² (Cartesian mode).
+        orientation_xyzw: orientation reference ``(4,)`` ``(x, y, z, w)`` or ``None`` to hold
+            the orientation captured when Cartesian control started (Cartesian mode).
+        angular_velocity: optional angular velocity reference ``(3,)`` rad/s (Cartesian mode).
+        joint_acceleration: joint accelerations ``(n,)`` rad/s² (joint mode).
+    """
+
+    tick: int
+    mode: CommandMode
+    linear_acceleration: np.ndarray | None = None
+    orientation_xyzw: np.ndarray | None = None
+    angular_velocity: np.ndarray | None = None
+    joint_acceleration: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class ValidationLimits:
+    """Plausibility bounds: a command outside them is rejected, never applied (values inside
+    them but beyond the arm's joint limits are clamped instead)."""
+
+    max_linear_acceleration: float = 50.0  #: m/s², norm of ẍ_des
+    max_angular_velocity: float = 10.0  #: rad/s, norm of ω_ref
+    max_joint_acceleration: float = 100.0  #: rad/s², per joint in joint mode
+    quat_norm_tolerance: float = 0.1  #: reject quaternions with | ‖q‖ − 1 | above this
+
+
+class CommandRejectedError(ValueError):
+    """A command failed validation; ``reason`` is a short counter key."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+def _vector(value: object, size: int, name: str) -> np.ndarray:
+    if isinstance(value, np.ndarray) and value.dtype == np.float64:
+        arr = value
+    else:
+        try:
+            arr = np.asarray(value, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise CommandRejectedError("malformed", f"{name} is not numeric") from exc
+    if arr.shape != (size,):
+        raise CommandRejectedError("malformed", f"{name} must have {size} values, got {arr.size}")
+    if not np.isfinite(arr).all():
+        raise CommandRejectedError("non_finite", f"{name} contains NaN or inf")
+    return arr
+
+
+def _norm(v: np.ndarray) -> float:
+    return math.sqrt(float(v @ v))
+
+
+def validate_command(cmd: Command, n: int, bounds: ValidationLimits) -> Command:
+    """Check a command's shape, finiteness and plausibility.
+
+    Returns a normalised copy (float arrays, unit quaternion with ``w >= 0``).
+
+    Raises:
+        CommandRejectedError: with ``reason`` one of ``malformed``, ``non_finite``,
+            ``out_of_range``.
+    """
+    if not isinstance(cmd.tick, int) or cmd.tick < 0:
+        raise CommandRejectedError("malformed", "tick must be a non-negative integer")
+    if cmd.mode is CommandMode.JOINT:
+        if cmd.joint_acceleration is None:
+            raise CommandRejectedError("malformed", "joint command without joint_acceleration")
+        ddq = _vector(cmd.joint_acceleration, n, "joint_acceleration")
+        if np.max(np.abs(ddq)) > bounds.max_joint_acceleration:
+            raise CommandRejectedError(
+                "out_of_range",
+                f"joint acceleration above {bounds.max_joint_acceleration} rad/s²",
+            )
+        return Command(cmd.tick, CommandMode.JOINT, joint_acceleration=ddq)
+    if cmd.mode is not CommandMode.CARTESIAN:
+        raise CommandRejectedError("malformed", f"unknown command mode {cmd.mode!r}")
+    if cmd.linear_acceleration is None:
+        raise CommandRejectedError("malformed", "Cartesian command without linear_acceleration")
+    acc = _vector(cmd.linear_acceleration, 3, "linear_acceleration")
+    if _norm(acc) > bounds.max_linear_acceleration:
+        raise CommandRejectedError(
+            "out_of_range", f"linear acceleration above {bounds.max_linear_acceleration} m/s²"
+        )
+    quat = None
+    if cmd.orientation_xyzw is not None:
+        quat = _vector(cmd.orientation_xyzw, 4, "orientation")
+        norm = _norm(quat)
+        if abs(norm - 1.0) > bounds.quat_norm_tolerance:
+            raise CommandRejectedError("out_of_range", f"orientation quaternion norm {norm:.3g} != 1")
+        quat = quat / norm
+        if quat[3] < 0:
+            quat = -quat
+    omega = None
+    if cmd.angular_velocity is not None:
+        omega = _vector(cmd.angular_velocity, 3, "angular_velocity")
+        if _norm(omega) > bounds.max_angular_velocity:
+            raise CommandRejectedError(
+                "out_of_range", f"angular velocity above {bounds.max_angular_velocity} rad/s"
+            )
+    return Command(cmd.tick, CommandMode.CARTESIAN, acc, quat, omega)
+
+
+@dataclass
+class ControllerGains:
+    """Gains of the IK controller.
+
+    Attributes:
+        orientation_kp: orientation PD stiffness, 1/s² (rad/s² per rad of error).
+        orientation_kd: orientation PD damping, 1/s.
+        nullspace_kp: posture stiffness in the null space, 1/s².
+        nullspace_kd: joint damping in the null space, 1/s.
+        singular_epsilon: smallest singular value of J below which damping starts.
+        damping_max: maximum damping λ_max (same units as J's singular values).
+    """
+
+    orientation_kp: float = 100.0
+    orientation_kd: float = 20.0
+    nullspace_kp: float = 10.0
+    nullspace_kd: float = 6.0
+    singular_epsilon: float = 0.04
+    damping_max: float = 0.05
+
+
+@dataclass
+class ClampReport:
+    """Which limits were active in the last :func:`clamp_joint_accel` call (per tick)."""
+
+    acceleration: bool = False
+    velocity: bool = False
+    position: bool = False
+
+    @property
+    def any(self) -> bool:
+        """True if any clamp changed the commanded acceleration."""
+        return self.acceleration or self.velocity or self.position
+
+
+@dataclass
+class AccelBounds:
+    """State-dependent joint-acceleration interval ``[lo, hi]`` (each ``(n,)``, rad/s²) and,
+    per side, whether the bound comes from the velocity limit (else from a position limit or
+    the acceleration limit)."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+    lo_is_velocity: np.ndarray
+    hi_is_velocity: np.ndarray
+
+
+def joint_accel_bounds(
+    q: np.ndarray,
+    dq: np.ndarray,
+    limits: JointLimits,
+    dt: float,
+    brake_fraction: float = 0.5,
+) -> AccelBounds:
+    """The interval of joint accelerations that keeps the next state within every limit.
+
+    The next velocity ``dq + ddq·dt`` must stay within the velocity limit and below the speed
+    from which the joint can still stop (at ``brake_fraction`` of its acceleration limit) before
+    its position limits; ``|ddq|`` must stay within the acceleration limit. If a joint is
+    already outside that viable set, the interval collapses to the hardest allowed deceleration
+    toward it. (Both sides are computed at once on ``(2, n)`` arrays: few numpy calls.)
+
+    Discrete braking from speed v at deceleration a covers at most v·dt + v²/(2a) + v·dt/2
+    with the semi-implicit Euler integrator; the stop speed for a distance d solves that for v:
+    ``v = a (sqrt(2.25 dt² + 2 d / a) − 1.5 dt)``.
+    """
+    amax = limits.acceleration
+    vmax = limits.velocity
+    brake = brake_fraction * amax
+    # Row 0: distance to the upper limit, row 1: distance to the lower limit (rad).
+    D = np.maximum(np.stack((limits.upper - q, q - limits.lower)), 0.0)
+    S = brake * (np.sqrt(2.25 * dt * dt + D * (2.0 / brake)) - 1.5 * dt)
+    V = np.minimum(vmax, S)
+    V[1] *= -1.0  # row 1 becomes the lowest allowed next velocity
+    H = (V - dq) / dt
+    hi = np.minimum(amax, H[0])
+    lo = np.maximum(-amax, H[1])
+    bad = lo > hi
+    if bad.any():
+        fix = np.clip((np.clip(dq, V[1], V[0]) - dq) / dt, -amax, amax)
+        lo = np.where(bad, fix, lo)
+        hi = np.where(bad, fix, hi)
+    vel = S >= vmax
+    return AccelBounds(lo, hi, vel[1], vel[0])
+
+
+def apply_accel_bounds(
+    ddq: np.ndarray,
+    acceleration_limits: np.ndarray,
+    bounds: AccelBounds,
+    report: ClampReport | None = None,
+) -> np.ndarray:
+    """Scale ``ddq`` uniformly into the acceleration limits (keeps the Cartesian direction),
+    then clip each joint into ``bounds``; fills ``report`` with the active clamps."""
+    out = np.asarray(ddq, dtype=float)
+    ratio = float(np.max(np.abs(out) / acceleration_limits))
+    acc_clamped = ratio > 1.0
+    if acc_clamped:
+        out = out / ratio
+    below = out < bounds.lo
+    above = out > bounds.hi
+    if report is not None:
+        report.acceleration = acc_clamped
+        report.velocity = report.position = False
+    if below.any() or above.any():
+        if report is not None:
+            vel = (below & bounds.lo_is_velocity) | (above & bounds.hi_is_velocity)
+            report.velocity = bool(vel.any())
+            report.position = bool(((below | above) & ~vel).any())
+        out = np.clip(out, bounds.lo, bounds.hi)
+    return out
+
+
+def clamp_joint_accel(
+    ddq: np.ndarray,
+    q: np.ndarray,
+    dq: np.ndarray,
+    limits: JointLimits,
+    dt: float,
+    report: ClampReport | None = None,
+    brake_fraction: float = 0.5,
+) -> np.ndarray:
+    """Bound joint accelerations so the next state stays within every limit
+    (:func:`joint_accel_bounds` + :func:`apply_accel_bounds`).
+
+    Args:
+        ddq: requested joint accelerations ``(n,)`` rad/s².
+        q, dq: current joint positions ``(n,)`` rad and velocities ``(n,)`` rad/s.
+        limits: the joint limits.
+        dt: integration step, s.
+        report: filled with which clamps were active.
+        brake_fraction: share of the acceleration limit the position-limit braking may use.
+
+    Returns:
+        Clamped accelerations ``(n,)``: ``|ddq| <= limits.acceleration`` always holds.
+    """
+    bounds = joint_accel_bounds(q, dq, limits, dt, brake_fraction)
+    return apply_accel_bounds(ddq, limits.acceleration, bounds, report)
+
+
+@dataclass
+class IKController:
+    """Cartesian-acceleration → joint-acceleration controller (see module docstring).
+
+    Split in two so the command-independent work can run while the arm waits for the command:
+    :meth:`prepare` (after ``robot.update(q, dq)``: Jacobian, drift, damped inverse, posture
+    term) and :meth:`finish` (with the command). :meth:`compute` does both. Not thread-safe.
+
+    With ``p = Kp_n (q_posture − q) − Kd_n q̇`` the law is evaluated as
+    ``q̈ = J⁺_λ (a − J̇q̇ − J p) + p``, which equals ``J⁺_λ (a − J̇q̇) + (I − J⁺_λ J) p``.
+    """
+
+    robot: RobotModel
+    gains: ControllerGains = field(default_factory=ControllerGains)
+    posture: np.ndarray | None = None  #: null-space posture ``(n,)``; default the start pose
+    last_damping: float = 0.0  #: λ used in the last call
+    last_sigma_min: float = 0.0  #: smallest singular value of J in the last call
+
+    def __post_init__(self) -> None:
+        self._eye6 = np.eye(6)
+        if self.posture is None:
+            self.posture = self.robot.resolve_pose("middle")
+        self._Jt = np.zeros((self.robot.n, 6))
+        self._K = np.zeros((6, 6))
+        self._b0 = np.zeros(6)
+        self._p = np.zeros(self.robot.n)
+        self._R = np.eye(3)
+        self._omega = np.zeros(3)
+
+    def _damped_inverse(self, A: np.ndarray) -> tuple[np.ndarray, float]:
+        """``(A⁻¹, s)`` for the SPD 6×6 ``A = J Jᵀ (+ λ² I)`` via LAPACK Cholesky, with
+        ``s = 1/‖A⁻¹‖_F`` (a lower bound of ``A``'s smallest eigenvalue, within a factor √6);
+        ``s = 0`` if ``A`` is not positive definite."""
+        c, info = _potrf(A, lower=1, clean=1)
+        if info != 0:
+            return self._eye6, 0.0
+        L, info = _potri(c, lower=1)
+        if info != 0:
+            return self._eye6, 0.0
+        d = L.diagonal()
+        fro2 = 2.0 * float((L * L).sum()) - float(d @ d)
+        return L + L.T - np.diag(d), 1.0 / math.sqrt(fro2)
+
+    def prepare(self, q: np.ndarray, dq: np.ndarray) -> None:
+        """Command-independent part for state ``(q, dq)``; ``robot.update(q, dq)`` first.
+
+        The damping uses ``σ_min(J)² ≈ 1/‖(J Jᵀ)⁻¹‖_F``, a lower bound of the smallest
+        eigenvalue of ``J Jᵀ`` (tight within √6), so damping starts at or slightly before
+        ``σ_min = ε``: λ² = (1 − σ²/ε²) λ_max² below ε, else 0.
+        """
+        robot, g = self.robot, self.gains
+        J = robot.jacobian()
+        A = J @ J.T
+        K, sig2 = self._damped_inverse(A)
+        sigma = math.sqrt(sig2)
+        eps = g.singular_epsilon
+        lam2 = 0.0 if sigma >= eps else (1.0 - (sigma / eps) ** 2) * g.damping_max**2
+        self.last_sigma_min = sigma
+        self.last_damping = math.sqrt(lam2)
+        if lam2 > 0.0:
+            K, _ = self._damped_inverse(A + lam2 * self._eye6)
+        assert self.posture is not None
+        p = g.nullspace_kp * (self.posture - q) - g.nullspace_kd * dq
+        self._K = K
+        self._Jt = J.T
+        self._b0 = -robot.drift() - J @ p
+        self._p = p
+        self._R = robot.ee_placement().rotation
+        self._omega = robot.ee_velocity()[3:]
+
+    def finish(
+        self,
+        linear_acceleration: np.ndarray,
+        rotation_ref: np.ndarray,
+        angular_velocity_ref: np.ndarray | None = None,
+        angular_acceleration_ff: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Joint accelerations ``(n,)`` rad/s² for the command, after :meth:`prepare`.
+
+        Args:
+            linear_acceleration: desired EE linear acceleration ``(3,)`` m/s², base frame.
+            rotation_ref: orientation reference ``(3, 3)``.
+            angular_velocity_ref: angular velocity reference ``(3,)`` rad/s (default zero).
+            angular_acceleration_ff: angular acceleration feed-forward ``(3,)`` rad/s².
+        """
+        g = self.gains
+        b = self._b0.copy()
+        b[:3] += linear_acceleration
+        w_err = -self._omega if angular_velocity_ref is None else angular_velocity_ref - self._omega
+        b[3:] += g.orientation_kp * pin.log3(rotation_ref @ self._R.T) + g.orientation_kd * w_err
+        if angular_acceleration_ff is not None:
+            b[3:] += angular_acceleration_ff
+        return self._Jt @ (self._K @ b) + self._p
+
+    def compute(
+        self,
+        q: np.ndarray,
+        dq: np.ndarray,
+        linear_acceleration: np.ndarray,
+        rotation_ref: np.ndarray,
+        angular_velocity_ref: np.ndarray | None = None,
+        angular_acceleration_ff: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """:meth:`prepare` + :meth:`finish` (``robot.update(q, dq)`` must have been called)."""
+        self.prepare(q, dq)
+        return self.finish(linear_acceleration, rotation_ref, angular_velocity_ref, angular_acceleration_ff)
+
+
+__all__ = [
+    "AccelBounds",
+    "ClampReport",
+    "Command",
+    "CommandMode",
+    "CommandRejectedError",
+    "ControllerGains",
+    "IKController",
+    "ValidationLimits",
+    "apply_accel_bounds",
+    "clamp_joint_accel",
+    "joint_accel_bounds",
+    "matrix_from_quat_xyzw",
+    "validate_command",
+]

@@ -1,0 +1,414 @@
+"""The ``psm arm`` service: the simulated arm on the bus.
+
+Every tick the arm publishes :class:`~services.bus.messages.ArmState` on ``<prefix>/arm/state``
+and applies the latest valid :class:`~services.bus.messages.ArmCommand` from
+``<prefix>/arm/command``; link transforms go to ``<prefix>/arm/transforms`` at a lower rate.
+
+Clock modes (DESIGN §3):
+
+* ``realtime`` — state k is published at ``t0 + k·dt`` (wall clock); commands arriving before
+  ``t0 + (k+1)·dt`` drive the step to k+1; a later command counts as *late*.
+* ``lockstep`` — after publishing state k the arm waits for the command answering tick k, then
+  steps at once: deterministic and as fast as the loop allows. Before the first command the arm
+  re-publishes state 0 every ``lockstep_timeout_s`` (sim time does not advance without a
+  planner). If a command does not come within ``lockstep_timeout_s`` the arm advances without
+  it (counted in ``lockstep_timeouts``) and ticks at wall-clock pace until commands return, so
+  the watchdog brakes the arm promptly when the planner stops.
+
+Commands are received on Zenoh's thread, queued as raw bytes and decoded/validated on the loop
+thread, so the simulation is single-threaded.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import gc
+import json
+import os
+import queue
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.arm.bridge import command_from_message, frame_transforms, state_message
+from services.arm.config import ArmConfig
+from services.arm.controller import CommandRejectedError
+from services.arm.sim import ArmSim
+from services.bus.messages import ArmCommand, MessageDecodeError, decode
+from services.bus.runtime import Service
+
+SERVICE_NAME = "arm"
+
+_RING = 1 << 20  # timing samples kept (about 35 min at 500 Hz)
+_PUB_RING = 1 << 12  # publish times kept to match late commands to their state
+
+
+@dataclass
+class LoopStats:
+    """Timing of the control loop (wall clock, ns) and event counts."""
+
+    ticks: int = 0
+    wall_s: float = 0.0
+    missed_ticks: int = 0  #: realtime: state published more than one dt after its schedule
+    late_commands: int = 0  #: command answering tick k arrived after tick k's deadline
+    answered_ticks: int = 0  #: ticks for which an answering command arrived
+    lockstep_timeouts: int = 0
+    jitter_ns: np.ndarray = field(default_factory=lambda: np.zeros(_RING, dtype=np.int64))
+    latency_ns: np.ndarray = field(default_factory=lambda: np.zeros(_RING, dtype=np.int64))
+    n_jitter: int = 0
+    n_latency: int = 0
+
+    def add_jitter(self, ns: int) -> None:
+        """Record a tick's publication lateness vs. its schedule, ns."""
+        self.jitter_ns[self.n_jitter % _RING] = ns
+        self.n_jitter += 1
+
+    def add_latency(self, ns: int) -> None:
+        """Record a state→command latency, ns."""
+        self.latency_ns[self.n_latency % _RING] = ns
+        self.n_latency += 1
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-able summary with percentiles in µs."""
+
+        def pct(a: np.ndarray, n: int) -> dict[str, float]:
+            v = a[: min(n, _RING)]
+            if v.size == 0:
+                return {}
+            p50, p99, p999 = np.percentile(v, [50, 99, 99.9])
+            return {
+                "p50_us": float(p50) / 1e3,
+                "p99_us": float(p99) / 1e3,
+                "p99.9_us": float(p999) / 1e3,
+                "max_us": float(v.max()) / 1e3,
+                "mean_us": float(v.mean()) / 1e3,
+                "n": int(v.size),
+            }
+
+        return {
+            "ticks": self.ticks,
+            "wall_s": self.wall_s,
+            "ticks_per_s": self.ticks / self.wall_s if self.wall_s > 0 else 0.0,
+            "missed_ticks": self.missed_ticks,
+            "late_commands": self.late_commands,
+            "answered_ticks": self.answered_ticks,
+            "late_fraction": self.late_commands / self.answered_ticks if self.answered_ticks else 0.0,
+            "lockstep_timeouts": self.lockstep_timeouts,
+            "jitter": pct(self.jitter_ns, self.n_jitter),
+            "state_to_command_latency": pct(self.latency_ns, self.n_latency),
+        }
+
+
+class ArmService:
+    """The arm process: an :class:`ArmSim` driven by the bus (see module docstring)."""
+
+    def __init__(self, config: ArmConfig, service: Service | None = None) -> None:
+        self.config = config
+        section = config.arm
+        self.robot = section.load_robot()
+        self.sim = ArmSim(self.robot, section.sim_config(self.robot))
+        self.svc = service or Service(SERVICE_NAME, config)
+        self.keys = self.svc.keys
+        self.dt_ns = section.dt_ns
+        self.stats = LoopStats()
+        self._inbox: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
+        self._pub_ns = np.zeros(_PUB_RING, dtype=np.int64)
+        self._pub_tick = np.full(_PUB_RING, -1, dtype=np.int64)
+        self._answered = -1  # highest tick for which an answer has been seen
+        self._joint_names = list(self.robot.joint_names)
+        self._frames = self.robot.body_frame_ids()
+        rate = section.transforms_rate_hz
+        self._tf_every = max(1, round(1e9 / (rate * self.dt_ns))) if rate > 0 else 0
+        self._state_pub = self.svc.publisher(self.keys.arm_state)
+        self._tf_pub = self.svc.publisher(self.keys.arm_transforms) if self._tf_every else None
+        self._cmd_key = self.keys.arm_command.key
+        self._cmd_sub = self.svc.session.declare_subscriber(self._cmd_key, self._on_sample)
+        self.svc.on_close(self._undeclare)
+        if section.watch_services:
+            self.svc.watch_liveliness(section.watch_services, self._on_liveliness)
+
+    # ------------------------------------------------------------------ zenoh threads
+    def _on_sample(self, sample: Any) -> None:
+        # Zenoh receive thread: only enqueue (decoding happens on the loop thread).
+        self._inbox.put((time.perf_counter_ns(), sample.payload.to_bytes(), str(sample.encoding)))
+
+    def _on_liveliness(self, name: str, alive: bool) -> None:
+        if not alive:
+            self._inbox.put((time.perf_counter_ns(), None, name))
+
+    def _undeclare(self) -> None:
+        with contextlib.suppress(Exception):
+            self._cmd_sub.undeclare()
+
+    # ------------------------------------------------------------------ loop helpers
+    def _handle(self, item: tuple[Any, ...]) -> int:
+        """Process one inbox item; returns the tick it answers (-1 if unknown)."""
+        t_recv, payload, encoding = item
+        sim = self.sim
+        if payload is None:
+            self.svc.log.warning("watched service lost: braking", extra={"service": encoding})
+            sim.drop_command()
+            return -1
+        self.svc.counters.add("received")
+        try:
+            msg = decode(payload, encoding, ArmCommand)
+            cmd = command_from_message(msg)  # type: ignore[arg-type]
+        except MessageDecodeError as exc:
+            sim.reject("malformed", str(exc))
+            self.svc.record_rejection(self._cmd_key, str(exc))
+            return -1
+        except CommandRejectedError as exc:
+            sim.reject(exc.reason, str(exc))
+            self.svc.record_rejection(self._cmd_key, str(exc))
+            return int(msg.tick)  # type: ignore[attr-defined]
+        before = sim.counters["rejected"]
+        sim.submit(cmd)
+        if sim.counters["rejected"] > before:
+            self.svc.record_rejection(self._cmd_key, sim.last_rejection)
+        tick = cmd.tick
+        if tick > self._answered:
+            slot = tick % _PUB_RING
+            if self._pub_tick[slot] == tick:
+                lat = t_recv - int(self._pub_ns[slot])
+                self.stats.add_latency(lat)
+                self.stats.answered_ticks += 1
+                if lat > self.dt_ns and self.config.arm.clock == "realtime":
+                    self.stats.late_commands += 1
+            self._answered = tick
+        return tick
+
+    def _publish_state(self) -> int:
+        """Publish the current state (then prepare the next step, and the transforms on their
+        ticks); returns the ``perf_counter_ns`` time of the state's ``put``."""
+        sim = self.sim
+        snap = sim.snapshot()
+        msg = state_message(
+            snap,
+            self._joint_names,
+            self.config.arm.frame_id,
+            self.dt_ns * 1e-9,
+            watchdog_tripped=sim.watchdog_tripped,
+            rejected_commands=sim.counters["rejected"],
+        )
+        payload = msg.SerializeToString()
+        now = time.perf_counter_ns()
+        self._state_pub.put_bytes(payload)
+        slot = snap.tick % _PUB_RING
+        self._pub_ns[slot] = now
+        self._pub_tick[slot] = snap.tick
+        # Command-independent controller work overlaps with the command's flight time.
+        sim.prepare()
+        if self._tf_pub is not None and snap.tick % self._tf_every == 0:
+            self._tf_pub.put(
+                frame_transforms(self.robot, self._frames, snap.time_ns, self.config.arm.frame_id)
+            )
+        return now
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                item = self._inbox.get_nowait()
+            except queue.Empty:
+                return
+            self._handle(item)
+
+    def _wait_for_subscribers(self, timeout_s: float) -> None:
+        """Lockstep: give Zenoh time to route the state to existing subscribers before tick 0
+        (uses the publisher's matching status when available)."""
+        pub = getattr(self._state_pub, "_pub", None)
+        deadline = time.monotonic() + timeout_s
+        while (
+            pub is not None
+            and not getattr(pub, "matching_status", True)
+            and time.monotonic() < deadline
+            and not self.svc.stop_event.is_set()
+        ):
+            time.sleep(0.005)
+
+    def _done(self) -> bool:
+        max_ticks = self.config.arm.max_ticks
+        return self.svc.stop_event.is_set() or (0 < max_ticks <= self.sim.tick)
+
+    # ------------------------------------------------------------------ loops
+    def _wait(self, until_ns: int, tick: int) -> bool:
+        """Handle incoming commands until ``until_ns`` (perf_counter ns) or until one answers
+        ``tick`` (``tick < 0``: never stop early). Returns True if ``tick`` was answered."""
+        get = self._inbox.get
+        clock = time.perf_counter_ns
+        while True:
+            remaining = until_ns - clock()
+            if remaining <= 0:
+                return False
+            try:
+                item = get(timeout=remaining * 1e-9)
+            except queue.Empty:
+                return False
+            if self._handle(item) >= tick >= 0:
+                return True
+
+    def run_realtime(self) -> None:
+        """Realtime loop: state k is published at ``t0 + k·dt`` by the wall clock.
+
+        The step k → k+1 is computed as soon as the command answering k arrives (or at the
+        deadline ``t0 + (k+1)·dt`` without it: then with the held command or braking), and
+        state k+1 is published at its scheduled time, so the publication jitter does not
+        include the computation.
+        """
+        sim, stats, period = self.sim, self.stats, self.dt_ns
+        clock = time.perf_counter_ns
+        t0 = clock()
+        while True:
+            sched = t0 + sim.tick * period
+            self._wait(sched, -1)  # stepped early: hold the state until its time
+            late = self._publish_state() - sched
+            stats.add_jitter(late)
+            if late > period:
+                stats.missed_ticks += 1
+            if self._done():
+                break
+            self._wait(sched + period, sim.tick)
+            self._drain()
+            sim.step()
+            stats.ticks += 1
+
+    def run_lockstep(self) -> None:
+        """Lockstep loop: tick k+1 follows as soon as the command answering tick k arrived."""
+        sim, stats = self.sim, self.stats
+        timeout_s = self.config.arm.lockstep_timeout_s
+        dt_s = self.dt_ns * 1e-9
+        get = self._inbox.get
+        clock = time.monotonic
+        self._wait_for_subscribers(timeout_s)
+        started = False
+        starved = False
+        while True:
+            self._publish_state()
+            if self._done():
+                break
+            k = sim.tick
+            answered = self._answered >= k
+            deadline = clock() + (dt_s if starved else timeout_s)
+            while not answered:
+                remaining = deadline - clock()
+                if remaining <= 0:
+                    if not started:  # no planner yet: re-offer state 0, sim time frozen
+                        if self.svc.stop_event.is_set():
+                            return
+                        self._publish_state()
+                        deadline = clock() + timeout_s
+                        continue
+                    stats.lockstep_timeouts += 1
+                    starved = True
+                    break
+                try:
+                    item = get(timeout=min(remaining, 0.1))
+                except queue.Empty:
+                    if self.svc.stop_event.is_set():
+                        return
+                    continue
+                if self._handle(item) >= k:
+                    answered = True
+            if answered:
+                started = True
+                starved = False
+            sim.step()
+            stats.ticks += 1
+
+    def run(self) -> dict[str, Any]:
+        """Run until stopped (signal, ``max_ticks``); returns the stats summary."""
+        svc = self.svc
+        svc.start()
+        svc.install_signal_handlers()
+        section = self.config.arm
+        svc.log.info(
+            "arm running",
+            extra={
+                "clock": section.clock,
+                "dt_s": section.dt_s,
+                "ee_frame": self.robot.ee_frame,
+                "urdf": self.robot.urdf_path,
+                "joints": self.robot.n,
+            },
+        )
+        gc.collect()
+        gc.freeze()
+        t0 = time.perf_counter()
+        try:
+            if section.clock == "lockstep":
+                self.run_lockstep()
+            else:
+                self.run_realtime()
+        finally:
+            self.stats.wall_s = time.perf_counter() - t0
+            try:
+                summary = self.summary()
+                svc.log.info(
+                    "arm stopped",
+                    extra={"ticks": self.stats.ticks, **dict(self.sim.counters.items())},
+                )
+                if section.stats_file:
+                    Path(section.stats_file).write_text(json.dumps(summary, indent=2))
+            finally:
+                self._close()  # the bus is closed even if the statistics cannot be written
+        return summary
+
+    #: If set (by :func:`main`, the process entry point), a shutdown whose Zenoh teardown
+    #: hangs for more than ``close_timeout_s`` ends the process (the loop has already stopped
+    #: and the statistics are written).
+    exit_on_hang: bool = False
+    close_timeout_s: float = 5.0
+
+    def _close(self) -> None:
+        timer = None
+        if self.exit_on_hang:
+            timer = threading.Timer(self.close_timeout_s, self._hung)
+            timer.daemon = True
+            timer.start()
+        try:
+            self.svc.close()
+        finally:
+            if timer is not None:
+                timer.cancel()
+
+    def _hung(self) -> None:
+        sys.stderr.write(f"arm: bus shutdown still blocked after {self.close_timeout_s} s; exiting\n")
+        sys.stderr.flush()
+        os._exit(0)
+
+    def summary(self) -> dict[str, Any]:
+        """Loop statistics + simulation counters + service counters."""
+        out = self.stats.summary()
+        out["clock"] = self.config.arm.clock
+        out["dt_s"] = self.config.arm.dt_s
+        out["sim_counters"] = dict(self.sim.counters)
+        out["service_counters"] = self.svc.counters.snapshot()
+        out["final_tick"] = self.sim.tick
+        return out
+
+
+def set_realtime_priority(priority: int) -> str:
+    """Switch the calling process to ``SCHED_FIFO`` at ``priority`` (threads created afterwards,
+    e.g. Zenoh's, inherit it). Returns ``""`` on success, else why it was not possible."""
+    if priority <= 0:
+        return ""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError) as exc:
+        return f"cannot set SCHED_FIFO priority {priority}: {exc}"
+    return ""
+
+
+def main(config: ArmConfig) -> int:
+    """Run the arm service with a loaded config; returns the exit code."""
+    problem = set_realtime_priority(config.arm.rt_priority)
+    service = ArmService(config)
+    service.exit_on_hang = True
+    if problem:
+        service.svc.log.warning(problem + "; running with normal scheduling")
+    service.run()
+    return 0

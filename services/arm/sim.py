@@ -1,0 +1,273 @@
+"""The simulated arm: fixed-step integration, command handling, watchdog brake (bus-free).
+
+:class:`ArmSim` owns the joint state and advances it one tick at a time::
+
+    sim = ArmSim(robot, ArmSimConfig(dt_ns=2_000_000))
+    snap = sim.snapshot()          # state k: publish it
+    sim.submit(command)            # the command answering state k (validated, maybe rejected)
+    sim.step()                     # integrate to state k+1
+
+Time is the simulation's own: ``time_ns = tick * dt_ns``. The watchdog is in sim time too: a
+command answering tick ``c`` is used while ``(tick - c) * dt_ns <= watchdog_timeout_ns``; after
+that the arm brakes to zero velocity within its limits and never re-uses the old command.
+Integration is semi-implicit Euler: ``dq += ddq dt; q += dq dt``.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+import pinocchio as pin
+
+from services.arm.controller import (
+    AccelBounds,
+    ClampReport,
+    Command,
+    CommandMode,
+    CommandRejectedError,
+    ControllerGains,
+    IKController,
+    ValidationLimits,
+    apply_accel_bounds,
+    joint_accel_bounds,
+    validate_command,
+)
+from services.arm.robot import (
+    EEState,
+    RobotModel,
+    matrix_from_quat_xyzw,
+)
+
+
+@dataclass
+class ArmSimConfig:
+    """Parameters of the simulated arm.
+
+    Attributes:
+        dt_ns: integration step in ns (default 2 ms = 500 Hz).
+        start_pose: named pose or joint vector ``(n,)`` rad.
+        posture: null-space posture (named pose or joint vector); default the start pose.
+        watchdog_timeout_ns: sim time without a fresh valid command before braking (20 ms).
+        gains: IK controller gains.
+        validation: plausibility bounds for commands.
+        brake_fraction: share of the acceleration limits used by position-limit braking.
+    """
+
+    dt_ns: int = 2_000_000
+    start_pose: str | list[float] = "ready"
+    posture: str | list[float] | None = None
+    watchdog_timeout_ns: int = 20_000_000
+    gains: ControllerGains = field(default_factory=ControllerGains)
+    validation: ValidationLimits = field(default_factory=ValidationLimits)
+    brake_fraction: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.dt_ns, int) or self.dt_ns <= 0:
+            raise ValueError("dt_ns must be a positive integer number of nanoseconds")
+        if not isinstance(self.watchdog_timeout_ns, int) or self.watchdog_timeout_ns < 0:
+            raise ValueError("watchdog_timeout_ns must be a non-negative integer")
+        if not 0.0 < self.brake_fraction <= 1.0:
+            raise ValueError("brake_fraction must be in (0, 1]")
+
+
+@dataclass(frozen=True)
+class ArmSnapshot:
+    """State of the arm at one tick (everything a state message carries).
+
+    ``q``, ``dq``, ``ddq`` are ``(n,)`` (rad, rad/s, rad/s²; ``ddq`` is the acceleration applied
+    over the last step), ``ee`` the end-effector state at this tick with the accelerations that
+    ``ddq`` produces at this state.
+    """
+
+    tick: int
+    time_ns: int
+    q: np.ndarray
+    dq: np.ndarray
+    ddq: np.ndarray
+    ee: EEState
+    braking: bool
+
+
+class ArmSim:
+    """Simulated fixed-base arm with a Cartesian-acceleration interface (see module docstring)."""
+
+    def __init__(self, robot: RobotModel, config: ArmSimConfig | None = None) -> None:
+        self.robot = robot
+        self.config = config or ArmSimConfig()
+        cfg = self.config
+        self.dt = cfg.dt_ns * 1e-9
+        self.q = robot.resolve_pose(cfg.start_pose)
+        self.dq = np.zeros(robot.n)
+        self.ddq = np.zeros(robot.n)
+        posture = cfg.start_pose if cfg.posture is None else cfg.posture
+        self.controller = IKController(robot, cfg.gains, robot.resolve_pose(posture))
+        self.tick = 0
+        self.counters: Counter[str] = Counter()
+        self.clamp = ClampReport()
+        self.braking = True
+        self._command: Command | None = None
+        self._hold_rotation: np.ndarray | None = None
+        self._ref_rotation: np.ndarray | None = None
+        self._ref_quat: np.ndarray | None = None
+        self._snapshot: ArmSnapshot | None = None
+        self._bounds: AccelBounds | None = None
+        self.last_rejection = ""
+        #: True once a held command expired (watchdog), until a fresh command is accepted.
+        self.watchdog_tripped = False
+        self._refresh()
+
+    # ------------------------------------------------------------------ state
+    @property
+    def time_ns(self) -> int:
+        """Sim time of the current tick, ns."""
+        return self.tick * self.config.dt_ns
+
+    def snapshot(self) -> ArmSnapshot:
+        """State at the current tick (cached; recomputed only after :meth:`step`)."""
+        assert self._snapshot is not None
+        return self._snapshot
+
+    def _refresh(self) -> None:
+        robot = self.robot
+        robot.update(self.q, self.dq)
+        acc = robot.jacobian() @ self.ddq + robot.drift()
+        twist = robot.ee_velocity()
+        M = robot.ee_placement()
+        xyzquat = pin.SE3ToXYZQUAT(M)
+        quat = xyzquat[3:]
+        if quat[3] < 0:
+            quat = -quat
+        ee = EEState(
+            position=xyzquat[:3],
+            quat_xyzw=quat,
+            rotation=M.rotation.copy(),
+            linear_velocity=twist[:3],
+            angular_velocity=twist[3:],
+            linear_acceleration=acc[:3],
+            angular_acceleration=acc[3:],
+        )
+        # q, dq, ddq are replaced (never mutated in place) by step(), so no copies are needed.
+        self._snapshot = ArmSnapshot(self.tick, self.time_ns, self.q, self.dq, self.ddq, ee, self.braking)
+        self._bounds = None
+
+    def prepare(self) -> None:
+        """Do the command-independent work for the current tick (Jacobian, damped inverse,
+        posture term, limit interval). Optional: :meth:`step` calls it if needed; the service
+        calls it while it waits for the command, to shorten the state→step critical path."""
+        if self._bounds is None:
+            self.controller.prepare(self.q, self.dq)
+            self._bounds = joint_accel_bounds(
+                self.q, self.dq, self.robot.limits, self.dt, self.config.brake_fraction
+            )
+
+    # ------------------------------------------------------------------ commands
+    def submit(self, cmd: Command) -> bool:
+        """Offer a command. Returns True if accepted (it will drive the next steps).
+
+        Rejected (and counted under ``rejected_<reason>``): malformed, non-finite, out of range,
+        or answering a tick that has not happened yet. Ignored (counted ``stale``): a command
+        older than the one already held.
+        """
+        self.counters["commands_received"] += 1
+        try:
+            if isinstance(cmd.tick, int) and cmd.tick > self.tick:
+                raise CommandRejectedError("malformed", f"command answers future tick {cmd.tick}")
+            valid = validate_command(cmd, self.robot.n, self.config.validation)
+        except CommandRejectedError as exc:
+            self.counters[f"rejected_{exc.reason}"] += 1
+            self.counters["rejected"] += 1
+            self.last_rejection = str(exc)
+            return False
+        if self._command is not None and valid.tick < self._command.tick:
+            self.counters["stale"] += 1
+            return False
+        self._command = valid
+        self.counters["commands_accepted"] += 1
+        if self.command_fresh():
+            self.watchdog_tripped = False
+        return True
+
+    def drop_command(self) -> None:
+        """Forget the held command: the arm brakes from the next step on (e.g. the planner's
+        liveliness token disappeared)."""
+        self._command = None
+
+    def reject(self, reason: str, message: str) -> None:
+        """Count a command that could not even be decoded (reason e.g. ``malformed``)."""
+        self.counters["commands_received"] += 1
+        self.counters[f"rejected_{reason}"] += 1
+        self.counters["rejected"] += 1
+        self.last_rejection = message
+
+    def command_fresh(self) -> bool:
+        """True if the held command is within the watchdog timeout at the current tick."""
+        c = self._command
+        return c is not None and (self.tick - c.tick) * self.config.dt_ns <= (self.config.watchdog_timeout_ns)
+
+    # ------------------------------------------------------------------ stepping
+    def _brake_accel(self) -> np.ndarray:
+        """Joint deceleration stopping every joint along the current joint-space direction."""
+        amax = self.robot.limits.acceleration
+        ddq = -self.dq / self.dt
+        ratio = float(np.max(np.abs(ddq) / amax))
+        return ddq / ratio if ratio > 1.0 else ddq
+
+    def compute_accel(self) -> np.ndarray:
+        """Joint accelerations ``(n,)`` for the current tick (before limits)."""
+        cmd = self._command
+        if not self.command_fresh() or cmd is None:
+            if not self.braking:
+                self.counters["watchdog_trips"] += 1
+                self.watchdog_tripped = True
+            self.braking = True
+            self._hold_rotation = None
+            return self._brake_accel()
+        self.braking = False
+        if cmd.mode is CommandMode.JOINT:
+            self._hold_rotation = None
+            assert cmd.joint_acceleration is not None
+            return cmd.joint_acceleration
+        assert cmd.linear_acceleration is not None
+        if cmd.orientation_xyzw is None:
+            if self._hold_rotation is None:
+                self._hold_rotation = self.snapshot().ee.rotation
+            R_ref = self._hold_rotation
+        else:
+            if self._ref_quat is None or not np.array_equal(self._ref_quat, cmd.orientation_xyzw):
+                self._ref_quat = cmd.orientation_xyzw
+                self._ref_rotation = matrix_from_quat_xyzw(cmd.orientation_xyzw)
+            R_ref = self._ref_rotation
+        assert R_ref is not None
+        self.prepare()
+        return self.controller.finish(cmd.linear_acceleration, R_ref, cmd.angular_velocity)
+
+    def step(self) -> ArmSnapshot:
+        """Advance one tick with the held command (or brake) and return the new snapshot."""
+        ddq = self.compute_accel()
+        self.prepare()
+        assert self._bounds is not None
+        ddq = apply_accel_bounds(ddq, self.robot.limits.acceleration, self._bounds, self.clamp)
+        if self.clamp.acceleration:
+            self.counters["clamped_acceleration"] += 1
+        if self.clamp.velocity:
+            self.counters["clamped_velocity"] += 1
+        if self.clamp.position:
+            self.counters["clamped_position"] += 1
+        if self.braking:
+            self.counters["braking_ticks"] += 1
+        self.ddq = ddq
+        self.dq = self.dq + ddq * self.dt
+        q = self.q + self.dq * self.dt
+        lim = self.robot.limits
+        # Final guard (never active from a viable state): positions stay inside the limits.
+        if (q < lim.lower).any() or (q > lim.upper).any():
+            self.counters["position_guard"] += 1
+            out = (q < lim.lower) | (q > lim.upper)
+            q = np.clip(q, lim.lower, lim.upper)
+            self.dq = np.where(out, 0.0, self.dq)
+        self.q = q
+        self.tick += 1
+        self._refresh()
+        return self.snapshot()

@@ -1,0 +1,171 @@
+"""Bus sub-commands: ``psm record``, ``psm replay``, ``psm echo``, ``psm serve router``.
+
+Other modules add their own ``psm serve <target>`` with :func:`serve_targets`::
+
+    def register(subparsers):
+        from services.bus.cli import serve_targets
+        p = serve_targets(subparsers).add_parser("arm", help="simulated arm")
+        p.set_defaults(func=run_arm)
+
+Every command takes the common bus flags (``--config``, ``--prefix``, ``--mode``,
+``--connect``, ``--listen``, ``--[no-]multicast``, ``--set PATH=VALUE``; see
+:mod:`services.bus.config`). Heavy imports (zenoh, mcap) happen inside the command functions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+__all__ = ["register", "serve_targets"]
+
+_SERVE_TARGETS = "_psm_serve_targets"
+
+
+def serve_targets(subparsers: Any) -> Any:
+    """The sub-parsers action of ``psm serve`` (created on first use), to add targets to."""
+    serve = subparsers.choices.get("serve")
+    if serve is None:
+        serve = subparsers.add_parser(
+            "serve", help="run a long-lived bus service (router, ...)",
+            description="Run a long-lived bus service until SIGINT/SIGTERM.",
+        )
+        targets = serve.add_subparsers(dest="target", metavar="TARGET", required=True)
+        setattr(serve, _SERVE_TARGETS, targets)
+    return getattr(serve, _SERVE_TARGETS)
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from services.bus.config import ConfigError, config_from_args
+    from services.bus.recorder import RecorderConfig, RecorderError, run_recorder
+
+    extra = {
+        "recorder.output": args.output,
+        "recorder.key_exprs": args.key_expr,
+        "recorder.split_size_mb": args.split_size_mb,
+        "recorder.split_duration_s": args.split_duration_s,
+        "recorder.chunk_size": args.chunk_size,
+        "recorder.overwrite": True if args.overwrite else None,
+        "recorder.history": args.history,
+    }
+    try:
+        cfg = config_from_args(RecorderConfig, args, extra)
+        return run_recorder(cfg)
+    except (ConfigError, RecorderError) as exc:
+        print(f"psm record: {exc}", file=sys.stderr)
+        return 2
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from services.bus.config import ConfigError, config_from_args
+    from services.bus.replayer import ReplayerConfig, run_replayer
+
+    extra = {
+        "replayer.files": args.files,
+        "replayer.speed": args.speed,
+        "replayer.as_fast_as_possible": True if args.as_fast_as_possible else None,
+        "replayer.topics": args.topics,
+        "replayer.exclude": args.exclude,
+        "replayer.remap_prefix": args.remap_prefix,
+        "replayer.loop": True if args.loop else None,
+        "replayer.wait_subscribers_s": args.wait_subscribers,
+    }
+    try:
+        cfg = config_from_args(ReplayerConfig, args, extra)
+        return run_replayer(cfg)
+    except ConfigError as exc:
+        print(f"psm replay: {exc}", file=sys.stderr)
+        return 2
+
+
+def _cmd_echo(args: argparse.Namespace) -> int:
+    from services.bus.config import ConfigError, config_from_args
+    from services.bus.echo import EchoConfig, run_echo
+
+    extra = {"echo.key_exprs": args.key_exprs or None,
+             "echo.quiet": True if args.quiet else None}
+    try:
+        return run_echo(config_from_args(EchoConfig, args, extra))
+    except ConfigError as exc:
+        print(f"psm echo: {exc}", file=sys.stderr)
+        return 2
+
+
+def _cmd_router(args: argparse.Namespace) -> int:
+    from services.bus.config import ConfigError, ServiceConfig, config_from_args
+    from services.bus.router import run_router
+
+    try:
+        cfg = config_from_args(ServiceConfig, args, {"zenoh.mode": "router"})
+        return run_router(cfg)
+    except ConfigError as exc:
+        print(f"psm serve router: {exc}", file=sys.stderr)
+        return 2
+
+
+def register(subparsers: Any) -> None:
+    """Add ``record``, ``replay`` and ``serve router`` to the ``psm`` command line."""
+    from services.bus.config import add_config_arguments
+
+    p = subparsers.add_parser(
+        "record", help="record bus traffic to MCAP",
+        description="Subscribe to <prefix>/** and write every sample, bytes unchanged, to MCAP. "
+        "SIGINT/SIGTERM finalise the file.",
+    )
+    p.add_argument("-o", "--output", help="output .mcap (default out/recording-<time>.mcap)")
+    p.add_argument("-k", "--key-expr", action="append",
+                   help="key expression to record (repeatable; default <prefix>/**)")
+    p.add_argument("--split-size-mb", type=float, help="start a new file every N MB")
+    p.add_argument("--split-duration-s", type=float, help="start a new file every N seconds")
+    p.add_argument("--chunk-size", type=int, help="MCAP chunk size, bytes")
+    p.add_argument("--overwrite", action="store_true", help="overwrite an existing file")
+    p.add_argument("--history", action=argparse.BooleanOptionalAction, default=None,
+                   help="fetch late-joiner history at start (default on)")
+    add_config_arguments(p)
+    p.set_defaults(func=_cmd_record)
+
+    p = subparsers.add_parser(
+        "replay", help="republish an MCAP recording on the bus",
+        description="Republish every message with the same key, bytes and encoding, "
+        "preserving the recorded timing.",
+    )
+    p.add_argument("files", nargs="+", metavar="FILE.mcap")
+    p.add_argument("--speed", type=float, help="time scale (default 1)")
+    p.add_argument("--as-fast-as-possible", action="store_true", help="ignore recorded timing")
+    p.add_argument("--topics", nargs="+", metavar="KEYEXPR", help="only these key expressions")
+    p.add_argument("--exclude", nargs="+", metavar="KEYEXPR", help="drop these key expressions")
+    p.add_argument("--remap-prefix", metavar="OLD=NEW", help="move keys to another prefix")
+    p.add_argument("--loop", action="store_true", help="repeat until stopped")
+    p.add_argument("--wait-subscribers", type=float, metavar="SECONDS",
+                   help="wait up to SECONDS for a matching subscriber before sending")
+    add_config_arguments(p)
+    p.set_defaults(func=_cmd_replay)
+
+    p = subparsers.add_parser(
+        "echo", help="print and check bus messages",
+        description="Print every message (decoded) and count malformed ones as rejected.",
+    )
+    p.add_argument("key_exprs", nargs="*", metavar="KEYEXPR", help="default <prefix>/**")
+    p.add_argument("-q", "--quiet", action="store_true", help="only count and check")
+    add_config_arguments(p)
+    p.set_defaults(func=_cmd_echo)
+
+    r = serve_targets(subparsers).add_parser(
+        "router", help="zenoh router (python zenoh, router mode)",
+        description="Run a Zenoh router; listens on tcp/0.0.0.0:7447 unless --listen is given.",
+    )
+    add_config_arguments(r)
+    r.set_defaults(func=_cmd_router)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run a bus sub-command directly (``python -m services.bus.cli record ...``)."""
+    parser = argparse.ArgumentParser(prog="psm")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,435 @@
+"""``psm record``: write every bus sample, bytes unchanged, to MCAP.
+
+* Subscribes ``<prefix>/**`` (or the configured key expressions), with late-joiner history so
+  latched goals/obstacle sets published before the recorder started are captured too.
+* One MCAP channel per (key expression, encoding); the channel's schema is the protobuf
+  ``FileDescriptorSet`` of the type named by the sample's encoding
+  (``application/protobuf;psm.ArmState`` -> schema ``psm.ArmState``), so Foxglove and the
+  ``mcap`` CLI decode the file without the project. Samples of unknown encodings are recorded
+  schemaless (``message_encoding`` = the Zenoh encoding). The exact Zenoh encoding string is kept
+  in the channel metadata (``zenoh_encoding``) for the replayer.
+* ``log_time`` = receive time (UNIX ns, see below), ``publish_time`` = the
+  message's own ``stamp_ns`` (falls back to the receive time), ``sequence`` = per-channel count.
+* zstd chunks of ``chunk_size`` bytes written straight to the OS (no user-space buffering), and a
+  chunk is closed at least every ``flush_interval_s``: after SIGKILL the file stays readable up
+  to the last complete chunk with a non-seeking reader. SIGINT/SIGTERM finalise the file
+  (summary, statistics, chunk and message indexes).
+* A metadata record ``psm.recorder`` holds the config snapshot and the project version.
+* ``split_size_mb`` / ``split_duration_s`` start a new file (``<stem>-0000.mcap``, ...).
+* An unwritable path or too little free disk space raises :class:`RecorderError` at start.
+
+Samples reach the writer thread through a bounded zenoh channel (``"channel"`` delivery of
+:class:`services.bus.runtime.Subscription`): Zenoh's receive thread runs no Python, and when the
+writer falls behind, zenoh applies back-pressure instead of dropping. ``log_time`` is taken when
+the writer thread takes the sample off that channel (= arrival time unless it is behind).
+
+Example::
+
+    psm record -o out/run.mcap --connect tcp/127.0.0.1:7447 --no-multicast
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import shutil
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from services.bus.config import ServiceConfig, config_to_dict, meta, spec
+from services.bus.messages import (
+    ENCODING_PREFIX,
+    MESSAGE_TYPES,
+    file_descriptor_set,
+    stamp_ns_of,
+)
+
+__all__ = ["McapSink", "RecorderConfig", "RecorderError", "RecorderSection", "run_recorder"]
+
+
+class RecorderError(RuntimeError):
+    """The recorder cannot write its output (unwritable path, disk full, ...)."""
+
+
+@dataclass
+class RecorderSection:
+    """``[recorder]`` section."""
+
+    output: str = spec("", "output .mcap path (default out/recording-<UTC time>.mcap)")
+    key_exprs: list[str] = field(
+        default_factory=list, metadata=meta("key expressions to record (default <prefix>/**)")
+    )
+    chunk_size: int = spec(256 * 1024, "MCAP chunk size, bytes", ge=1024, le=1 << 30)
+    compression: str = spec("zstd", "chunk compression", choices=("zstd", "lz4", "none"))
+    flush_interval_s: float = spec(
+        1.0, "close the open chunk at least this often, s (bounds loss on SIGKILL)", gt=0.0
+    )
+    split_size_mb: float = spec(0.0, "start a new file after this many MB (0 = never)", ge=0.0)
+    split_duration_s: float = spec(
+        0.0, "start a new file after this many seconds (0 = never)", ge=0.0
+    )
+    min_free_mb: float = spec(64.0, "refuse to start with less free disk space, MB", ge=0.0)
+    history: bool = spec(True, "fetch late-joiner history (latched goals, obstacles) at start")
+    queue_size: int = spec(
+        100_000, "samples buffered between Zenoh and the writer; when full, zenoh applies "
+        "back-pressure (nothing is dropped)", ge=1
+    )
+    overwrite: bool = spec(False, "overwrite an existing output file")
+
+
+@dataclass
+class RecorderConfig(ServiceConfig):
+    """Recorder service configuration."""
+
+    recorder: RecorderSection = field(default_factory=RecorderSection)
+
+
+class _UnbufferedFile:
+    """Write-through file object for :class:`mcap.writer.Writer`: every ``write`` reaches the
+    OS at once (the writer writes one whole chunk per call), so a killed process leaves every
+    complete chunk on disk."""
+
+    def __init__(self, path: Path, overwrite: bool) -> None:
+        self._f = open(path, "wb" if overwrite else "xb", buffering=0)  # noqa: SIM115
+        self.size = 0
+
+    def write(self, data: bytes | bytearray | memoryview) -> int:
+        view = memoryview(data)
+        total = len(view)
+        while view:
+            n = self._f.write(view)
+            if n is None or n <= 0:
+                raise OSError(errno.EIO, "short write")
+            view = view[n:]
+        self.size += total
+        return total
+
+    def tell(self) -> int:
+        return self.size
+
+    def flush(self) -> None:
+        """Nothing is buffered in user space."""
+
+    def close(self) -> None:
+        self._f.close()
+
+
+def _check_writable(path: Path, min_free_mb: float, overwrite: bool) -> None:
+    parent = path.parent if str(path.parent) else Path(".")
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise RecorderError(f"cannot create directory {parent}: {exc.strerror}") from None
+    if path.exists() and not overwrite:
+        raise RecorderError(f"{path} exists (use --overwrite or another --output)")
+    if not os.access(parent, os.W_OK):
+        raise RecorderError(f"cannot write to {parent}: permission denied")
+    free_mb = shutil.disk_usage(parent).free / 1e6
+    if free_mb < min_free_mb:
+        raise RecorderError(
+            f"only {free_mb:.1f} MB free in {parent} (need {min_free_mb:.0f} MB, "
+            "see recorder.min_free_mb)"
+        )
+
+
+class McapSink:
+    """Thread-safe MCAP writer with per-(key, encoding) channels, periodic chunk flushing and
+    size/duration splitting."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        chunk_size: int = 256 * 1024,
+        compression: str = "zstd",
+        split_size_mb: float = 0.0,
+        split_duration_s: float = 0.0,
+        min_free_mb: float = 0.0,
+        overwrite: bool = False,
+        metadata: dict[str, str] | None = None,
+        library: str = "psm-dataflow recorder",
+    ) -> None:
+        self.base = Path(path)
+        self.chunk_size = chunk_size
+        self.compression = compression
+        self.split_bytes = int(split_size_mb * 1e6)
+        self.split_ns = int(split_duration_s * 1e9)
+        self.overwrite = overwrite
+        self.metadata = dict(metadata or {})
+        self.library = library
+        self.min_free_mb = min_free_mb
+        self.paths: list[Path] = []
+        self.message_count = 0
+        self.file_message_count = 0
+        self._closed_counts: dict[str, int] = {}
+        self._lock = threading.Lock()
+        self._writer: Any = None
+        self._file: _UnbufferedFile | None = None
+        self._channels: dict[tuple[str, str], int] = {}
+        self._schemas: dict[str, int] = {}
+        self._seq: dict[int, int] = {}
+        self._topics: dict[int, str] = {}
+        self._file_start_ns = 0
+        self._unflushed = 0
+        self._closed = False
+        self._open_next()
+
+    def _next_path(self) -> Path:
+        if not (self.split_bytes or self.split_ns):
+            return self.base
+        return self.base.with_name(f"{self.base.stem}-{len(self.paths):04d}{self.base.suffix}")
+
+    def _open_next(self) -> None:
+        from services.bus.mcap_writer import FastMcapWriter
+
+        path = self._next_path()
+        _check_writable(path, self.min_free_mb, self.overwrite)
+        try:
+            self._file = _UnbufferedFile(path, self.overwrite)
+            self._writer = FastMcapWriter(
+                self._file, chunk_size=self.chunk_size, compression=self.compression
+            )
+            self._writer.start(profile="", library=self.library)
+            meta_record = dict(self.metadata)
+            meta_record["file_index"] = str(len(self.paths))
+            meta_record["created_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+            self._writer.add_metadata("psm.recorder", meta_record)
+        except FileExistsError:
+            raise RecorderError(f"{path} exists (use --overwrite)") from None
+        except OSError as exc:
+            raise RecorderError(f"cannot write recording to {path}: {exc.strerror}") from None
+        self.paths.append(path)
+        self._channels.clear()
+        self._schemas.clear()
+        self._seq.clear()
+        self._topics.clear()
+        self._file_start_ns = 0
+        self.file_message_count = 0
+
+    def _channel(self, key: str, encoding: str) -> int:
+        w = self._writer
+        schema_id = 0
+        name = encoding[len(ENCODING_PREFIX) :] if encoding.startswith(ENCODING_PREFIX) else ""
+        if name in MESSAGE_TYPES:
+            schema_id = self._schemas.get(name, 0)
+            if not schema_id:
+                schema_id = w.register_schema(
+                    name=name, encoding="protobuf", data=file_descriptor_set(name)
+                )
+                self._schemas[name] = schema_id
+            msg_encoding = "protobuf"
+        elif encoding.startswith("application/json"):
+            msg_encoding = "json"
+        else:
+            msg_encoding = encoding or "zenoh/bytes"
+        ch = w.register_channel(
+            topic=key,
+            message_encoding=msg_encoding,
+            schema_id=schema_id,
+            metadata={"zenoh_encoding": encoding},
+        )
+        self._channels[(key, encoding)] = ch
+        self._seq[ch] = 0
+        self._topics[ch] = key
+        return ch
+
+    def write(self, key: str, encoding: str, payload: bytes, recv_ns: int) -> None:
+        """Append one sample (``recv_ns`` = receive time, UNIX ns)."""
+        with self._lock:
+            if self._closed:
+                raise RecorderError("recording already finalised")
+            if self._file_start_ns == 0:
+                self._file_start_ns = recv_ns
+            elif (self.split_ns and recv_ns - self._file_start_ns >= self.split_ns) or (
+                self.split_bytes and self._file is not None
+                and self._file.size >= self.split_bytes
+            ):
+                self._finish_file()
+                self._open_next()
+                self._file_start_ns = recv_ns
+            ch = self._channels.get((key, encoding))
+            if ch is None:
+                ch = self._channel(key, encoding)
+            seq = self._seq[ch] + 1
+            self._seq[ch] = seq
+            self._writer.add_message(
+                ch, recv_ns, payload, stamp_ns_of(payload, encoding) or recv_ns, seq & 0xFFFFFFFF
+            )
+            self.message_count += 1
+            self._unflushed += 1
+
+    def flush(self) -> None:
+        """Close the open chunk (if it holds messages) and hand it to the OS."""
+        with self._lock:
+            if self._closed or not self._unflushed:
+                return
+            self._writer.flush()
+            self._unflushed = 0
+
+    @property
+    def channel_counts(self) -> dict[str, int]:
+        """Messages written per key, all files so far."""
+        out = dict(self._closed_counts)
+        if self._writer is not None and not self._closed:
+            for ch, n in self._writer.channel_message_counts().items():
+                key = self._topics[ch]
+                out[key] = out.get(key, 0) + n
+        return out
+
+    def _finish_file(self) -> None:
+        for ch, n in self._writer.channel_message_counts().items():
+            key = self._topics[ch]
+            self._closed_counts[key] = self._closed_counts.get(key, 0) + n
+        self._writer.finish()
+        assert self._file is not None
+        self._file.close()
+        self._file = None
+
+    def close(self) -> None:
+        """Finalise the current file (summary, indexes, footer) and close it. Idempotent."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._finish_file()
+
+
+def default_output_path() -> Path:
+    """``out/recording-<UTC time>.mcap``."""
+    return Path("out") / time.strftime("recording-%Y%m%dT%H%M%SZ.mcap", time.gmtime())
+
+
+def _subscriptions(
+    keys: Any, key_exprs: list[str], history: bool, on_sample: Callable[[Any], None]
+) -> list[tuple[str, Callable[[Any], None], int]]:
+    """The subscriptions that record ``key_exprs``: ``(key_expr, handler, history)``.
+
+    Live traffic: one plain subscriber per key expression, so everything is written in arrival
+    order by one writer thread. Late-joiner history: with ``history``, each latched selector
+    (goals, obstacles, scene) that intersects a recorded key expression gets an advanced
+    subscriber whose handler writes only samples published *before* the recorder started
+    (Zenoh HLC timestamp), skipping any the live path already wrote. One advanced subscriber
+    per latched selector, never one on ``<prefix>/**``: zenoh's advanced subscriber drops
+    samples that arrive out of timestamp order from one session, which happens whenever
+    express/real-time samples overtake others.
+    """
+    import hashlib
+    from collections import OrderedDict
+
+    import zenoh
+
+    kes = [zenoh.KeyExpr(k) for k in key_exprs]
+    latched = [
+        zenoh.KeyExpr(t.key) for t in keys.latched_selectors()
+        if history and any(k.intersects(t.key) for k in kes)
+    ]
+    subs: list[tuple[str, Callable[[Any], None], int]] = [(str(k), on_sample, 0) for k in kes]
+    if not latched:
+        return subs
+    start_ns = time.time_ns()
+    seen: OrderedDict[bytes, None] = OrderedDict()
+    lock = threading.Lock()
+    cache: dict[str, bool] = {}
+
+    def first_time(raw: Any) -> bool:
+        digest = hashlib.blake2b(raw.key.encode() + b"\0" + raw.payload, digest_size=16).digest()
+        with lock:
+            if digest in seen:
+                return False
+            seen[digest] = None
+            if len(seen) > 10_000:
+                seen.popitem(last=False)
+            return True
+
+    def is_latched(key: str) -> bool:
+        hit = cache.get(key)
+        if hit is None:
+            hit = cache[key] = any(e.intersects(key) for e in latched)
+        return hit
+
+    def live(raw: Any) -> None:
+        if is_latched(raw.key) and not first_time(raw):
+            return
+        on_sample(raw)
+
+    def hist(raw: Any) -> None:
+        if (raw.ts_ns and raw.ts_ns < start_ns and any(k.intersects(raw.key) for k in kes)
+                and first_time(raw)):
+            on_sample(raw)
+
+    subs = [(str(k), live, 0) for k in kes]
+    subs += [(str(lk), hist, 1) for lk in latched]
+    return subs
+
+
+def run_recorder(cfg: RecorderConfig, *, ready: threading.Event | None = None) -> int:
+    """Run the recorder until SIGINT/SIGTERM; returns the exit code (0 ok, 1 on write errors).
+
+    Raises :class:`RecorderError` before joining the bus if the output cannot be written.
+    """
+    from services.bus.runtime import Service, project_version
+
+    rc = cfg.recorder
+    out = Path(rc.output) if rc.output else default_output_path()
+    version = project_version()
+    sink = McapSink(
+        out,
+        chunk_size=rc.chunk_size,
+        compression=rc.compression,
+        split_size_mb=rc.split_size_mb,
+        split_duration_s=rc.split_duration_s,
+        min_free_mb=rc.min_free_mb,
+        overwrite=rc.overwrite,
+        metadata={
+            "project_version": version,
+            "config": json.dumps(config_to_dict(cfg), sort_keys=True),
+            "key_exprs": json.dumps(rc.key_exprs or [f"{cfg.prefix}/**"]),
+        },
+        library=f"psm-dataflow {version} recorder",
+    )
+    failed = threading.Event()
+    svc = Service("recorder", cfg, version=version)
+
+    def on_sample(raw: Any) -> None:
+        if failed.is_set():
+            return
+        try:
+            sink.write(raw.key, raw.encoding, raw.payload, raw.recv_ns)
+        except (OSError, RecorderError) as exc:
+            failed.set()
+            svc.record_error(f"write failed, stopping: {exc}")
+            svc.stop()
+
+    def flusher() -> None:
+        while not svc.stop_event.wait(rc.flush_interval_s):
+            try:
+                sink.flush()
+            except OSError as exc:
+                failed.set()
+                svc.record_error(f"flush failed, stopping: {exc}")
+                svc.stop()
+
+    def finalise() -> None:
+        sink.close()
+        svc.log.info(
+            "recording finalised",
+            extra={"files": [str(p) for p in sink.paths], "messages": sink.message_count,
+                   "channels": len(sink.channel_counts)},
+        )
+
+    svc.on_close(finalise)
+    key_exprs = rc.key_exprs or [svc.keys.all.key]
+    for kx, handler, history in _subscriptions(svc.keys, key_exprs, rc.history, on_sample):
+        svc.subscribe_raw(kx, handler, queue_size=rc.queue_size, history=history,
+                          delivery="channel", timestamps=history > 0)
+    threading.Thread(target=flusher, name="flusher", daemon=True).start()
+    svc.log.info("recording", extra={"output": str(sink.paths[0]), "key_exprs": key_exprs})
+    if ready is not None:
+        ready.set()
+    svc.run()
+    return 1 if failed.is_set() or svc.counters.dropped else 0

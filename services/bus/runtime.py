@@ -1,0 +1,777 @@
+"""Service runtime: one way to open a Zenoh session and run a well-behaved bus service.
+
+:func:`open_session` turns a :class:`~services.bus.config.ZenohConfig` into a session (mode,
+connect/listen endpoints, multicast scouting). :class:`Service` gives every process the same
+behaviour:
+
+* structured logging (``text`` or ``json`` lines on stderr) tagged with the service name;
+* a liveliness token at ``Keys.liveliness(name)`` while it runs;
+* a periodic :class:`~services.bus.messages.ServiceStatus` on ``Keys.status(name)`` with the
+  counters ``received``, ``rejected``, ``published``, ``errors``, ``dropped``;
+* typed publishers/subscribers whose Zenoh QoS comes from the :class:`~services.bus.messages.Topic`
+  (control loop: express + real-time priority; camera: droppable; goals/obstacles: cached by an
+  advanced publisher and fetched by advanced subscribers as history for late joiners);
+* subscription callbacks run on a worker thread fed by a bounded queue: the Zenoh receive thread
+  only enqueues (a full queue drops the sample and counts it in ``dropped``);
+* malformed payloads / wrong encodings are counted as ``rejected``, logged (rate-limited) and
+  skipped — the service keeps running; exceptions in callbacks are counted as ``errors``;
+* graceful shutdown on SIGINT/SIGTERM: stop subscriptions, drain the queues, run the
+  ``on_close`` hooks (flush outputs), publish a final status and close the session.
+
+Example::
+
+    from services.bus.config import ServiceConfig, load_config
+    from services.bus.messages import ArmCommand, ArmState
+    from services.bus.runtime import Service
+
+    cfg = load_config(ServiceConfig)                  # + file/env/flags
+    with Service("planner", cfg) as svc:
+        cmd_pub = svc.publisher(svc.keys.arm_command)
+
+        def on_state(state: ArmState, key: str) -> None:
+            cmd_pub.put(ArmCommand(stamp_ns=state.stamp_ns, tick=state.tick,
+                                   mode=ArmCommand.CARTESIAN_ACCELERATION))
+
+        svc.subscribe(svc.keys.arm_state, on_state)
+        svc.run()            # blocks until SIGINT/SIGTERM or svc.stop(); then closes cleanly
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import queue
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable
+from typing import Any, NamedTuple
+
+from google.protobuf.message import Message
+
+from services.bus.config import ServiceConfig, ZenohConfig
+from services.bus.messages import (
+    ServiceStatus,
+    StreamClass,
+    Topic,
+    decode,
+    encoding_for,
+)
+
+__all__ = [
+    "Counters",
+    "RawSample",
+    "Service",
+    "Subscription",
+    "TypedPublisher",
+    "open_session",
+    "project_version",
+    "setup_logging",
+    "zenoh_config",
+]
+
+_LOG_RESERVED = set(logging.LogRecord("", 0, "", 0, "", (), None).__dict__) | {"message"}
+
+
+# --------------------------------------------------------------------------------------------
+# Logging
+# --------------------------------------------------------------------------------------------
+
+
+class _Formatter(logging.Formatter):
+    """``text``: ``<UTC time> <LEVEL> <service> <message> k=v ...``; ``json``: one object."""
+
+    def __init__(self, service: str, fmt: str) -> None:
+        super().__init__()
+        self.service = service
+        self.json = fmt == "json"
+
+    def format(self, record: logging.LogRecord) -> str:
+        service = record.name[4:] if record.name.startswith("psm.") else self.service
+        fields = {k: v for k, v in record.__dict__.items() if k not in _LOG_RESERVED}
+        ts = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created))
+        ts += f".{int(record.msecs):03d}Z"
+        if self.json:
+            out = {
+                "ts": ts,
+                "level": record.levelname,
+                "service": service,
+                "logger": record.name,
+                "msg": record.getMessage(),
+                **fields,
+            }
+            if record.exc_info:
+                out["exc"] = self.formatException(record.exc_info)
+            return json.dumps(out, default=str)
+        extra = "".join(f" {k}={v!r}" if isinstance(v, str) else f" {k}={v}" for k, v in
+                        fields.items())
+        line = f"{ts} {record.levelname} {service}: {record.getMessage()}{extra}"
+        if record.exc_info:
+            line += "\n" + self.formatException(record.exc_info)
+        return line
+
+
+def setup_logging(service: str, level: str = "INFO", fmt: str = "text") -> logging.Logger:
+    """Configure the ``psm`` logger hierarchy to write structured lines to stderr; returns the
+    logger ``psm.<service>``. Extra fields: ``log.info("msg", extra={"key": k, "n": 3})``."""
+    root = logging.getLogger("psm")
+    root.setLevel(level)
+    for h in list(root.handlers):
+        if getattr(h, "_psm_runtime", False):
+            root.removeHandler(h)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_Formatter(service, fmt))
+    handler._psm_runtime = True  # type: ignore[attr-defined]
+    root.addHandler(handler)
+    root.propagate = False
+    return logging.getLogger(f"psm.{service}")
+
+
+class _RateLimiter:
+    """Allow one event per ``period_s``; counts the suppressed ones in between."""
+
+    def __init__(self, period_s: float = 1.0) -> None:
+        self.period_s = period_s
+        self._last = -1e18
+        self.suppressed = 0
+        self._lock = threading.Lock()
+
+    def allow(self) -> int | None:
+        """``None`` if suppressed, else the number suppressed since the last allowed event."""
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last >= self.period_s:
+                n, self.suppressed, self._last = self.suppressed, 0, now
+                return n
+            self.suppressed += 1
+            return None
+
+
+def project_version() -> str:
+    """The installed ``psm-dataflow`` version, else the one in ``pyproject.toml``."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("psm-dataflow")
+    except PackageNotFoundError:
+        import tomllib
+        from pathlib import Path
+
+        pyproject = Path(__file__).resolve().parents[2] / "pyproject.toml"
+        try:
+            with pyproject.open("rb") as fh:
+                return str(tomllib.load(fh)["project"]["version"])
+        except (OSError, KeyError, tomllib.TOMLDecodeError):
+            return "0+unknown"
+
+
+# --------------------------------------------------------------------------------------------
+# Session
+# --------------------------------------------------------------------------------------------
+
+_zenoh_log_initialised = False
+
+
+def zenoh_config(cfg: ZenohConfig) -> Any:
+    """A ``zenoh.Config`` from a validated :class:`ZenohConfig` (the optional JSON5 file is
+    loaded first, the typed fields override it)."""
+    import zenoh
+
+    conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(cfg.mode))
+    if cfg.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(list(cfg.connect)))
+    if cfg.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(cfg.multicast)))
+    conf.insert_json5("scouting/gossip/enabled", json.dumps(bool(cfg.gossip)))
+    # Samples carry an HLC timestamp (advanced publishers' caches and late joiners rely on it).
+    conf.insert_json5("timestamping/enabled", "true")
+    if cfg.shared_memory:
+        conf.insert_json5("transport/shared_memory/enabled", "true")
+    return conf
+
+
+def open_session(cfg: ZenohConfig) -> Any:
+    """Open a ``zenoh.Session`` from config. Zenoh's own (Rust) log level follows ``RUST_LOG``,
+    default ``error``."""
+    import zenoh
+
+    global _zenoh_log_initialised
+    if not _zenoh_log_initialised:
+        zenoh.init_log_from_env_or("error")
+        _zenoh_log_initialised = True
+    return zenoh.open(zenoh_config(cfg))
+
+
+def _qos_kwargs(topic: Topic) -> dict[str, Any]:
+    import zenoh
+
+    q = topic.qos
+    return {
+        "priority": getattr(zenoh.Priority, q.priority),
+        "express": q.express,
+        "congestion_control": getattr(zenoh.CongestionControl, q.congestion),
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# Counters, publishers, subscriptions
+# --------------------------------------------------------------------------------------------
+
+
+class Counters:
+    """Thread-safe service counters reported in :class:`ServiceStatus`."""
+
+    __slots__ = ("_lock", "dropped", "errors", "published", "received", "rejected")
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.received = 0
+        self.rejected = 0
+        self.published = 0
+        self.errors = 0
+        self.dropped = 0
+
+    def add(self, name: str, n: int = 1) -> None:
+        """Increment counter ``name`` by ``n``."""
+        with self._lock:
+            setattr(self, name, getattr(self, name) + n)
+
+    def snapshot(self, received: int = 0) -> dict[str, int]:
+        """A consistent copy of all counters (``received`` is added to the own count)."""
+        with self._lock:
+            return {
+                "received": self.received + received,
+                "rejected": self.rejected,
+                "published": self.published,
+                "errors": self.errors,
+                "dropped": self.dropped,
+            }
+
+
+class TypedPublisher:
+    """Publishes messages of one :class:`Topic` with its QoS and encoding."""
+
+    def __init__(
+        self, service: Service, topic: Topic, key: str | None = None, *, count: bool = True
+    ) -> None:
+        import zenoh
+
+        if topic.msg_type is None:
+            raise TypeError(f"topic {topic.key} has no message type; use a concrete topic")
+        self.topic = topic
+        self.key = key or topic.key
+        self.encoding = encoding_for(topic.msg_type)
+        self._counters = service.counters
+        self._count = count
+        kwargs = _qos_kwargs(topic)
+        if topic.qos.history > 0:
+            import zenoh.ext as zext
+
+            self._pub = zext.declare_advanced_publisher(
+                service.session,
+                self.key,
+                encoding=self.encoding,
+                cache=zext.CacheConfig(max_samples=topic.qos.history),
+                publisher_detection=True,
+                **kwargs,
+            )
+        else:
+            self._pub = service.session.declare_publisher(
+                self.key, encoding=zenoh.Encoding(self.encoding), **kwargs
+            )
+
+    def put(self, msg: Message) -> None:
+        """Serialise and publish ``msg`` (must be the topic's type)."""
+        if type(msg) is not self.topic.msg_type:
+            raise TypeError(
+                f"{self.key} carries {self.topic.msg_type.DESCRIPTOR.full_name}, "  # type: ignore[union-attr]
+                f"got {type(msg).__name__}"
+            )
+        self._pub.put(msg.SerializeToString())
+        if self._count:
+            self._counters.add("published")
+
+    @property
+    def has_subscribers(self) -> bool | None:
+        """Whether a matching subscriber exists (``None``: unknown for cached/latched
+        publishers, which zenoh does not report). It can turn true a little before the route
+        through a router is complete: lockstep starters should confirm with a round trip or
+        wait a few hundred ms before the first sample that must not be lost."""
+        status = getattr(self._pub, "matching_status", None)
+        return None if status is None else bool(status)
+
+    def put_bytes(self, payload: bytes) -> None:
+        """Publish an already serialised message of the topic's type."""
+        self._pub.put(payload)
+        if self._count:
+            self._counters.add("published")
+
+    def close(self) -> None:
+        """Undeclare the publisher."""
+        with contextlib.suppress(Exception):
+            self._pub.undeclare()
+
+
+class RawSample(NamedTuple):
+    """A received sample, undecoded: key, payload bytes, encoding string, receive time (UNIX
+    ns, wall clock) and, for subscriptions made with ``timestamps=True``, the sample's Zenoh
+    HLC timestamp (publication time, UNIX ns; 0 if absent or not requested)."""
+
+    key: str
+    payload: bytes
+    encoding: str
+    recv_ns: int
+    ts_ns: int = 0
+
+
+class Subscription:
+    """A subscriber whose callback runs on its own worker thread (by default never on Zenoh's).
+
+    Three deliveries:
+
+    * ``"queue"`` (default for data, camera, latched streams): the Zenoh callback only stamps
+      the receive time and appends to a bounded queue; when the queue is full the sample is
+      dropped and counted (``dropped``) — a slow consumer never stalls the session.
+    * ``"channel"`` (control streams, the recorder): a bounded zenoh ``FifoChannel``; the
+      receive thread runs no Python at all (no GIL), and a full channel applies back-pressure
+      instead of dropping — lossless, like the blocking congestion control of those streams.
+      The receive time is taken when the worker dequeues the sample (equal to the arrival time
+      unless the worker is behind).
+    * ``"inline"`` (opt-in only): the callback runs on Zenoh's receive thread — lowest latency,
+      for handlers that return within microseconds (store the latest value, set an event);
+      anything heavier stalls every stream of the session.
+    """
+
+    def __init__(
+        self,
+        service: Service,
+        key_expr: str,
+        handler: Callable[[RawSample], None],
+        *,
+        queue_size: int,
+        history: int = 0,
+        delivery: str = "queue",
+        timestamps: bool = False,
+        name: str = "",
+    ) -> None:
+        import zenoh
+
+        if delivery not in ("queue", "channel", "inline"):
+            raise ValueError(
+                f"delivery must be 'queue', 'channel' or 'inline', got {delivery!r}"
+            )
+        self.service = service
+        self.key_expr = key_expr
+        self.name = name or key_expr
+        self.delivery = delivery
+        self.timestamps = timestamps
+        self._handler = handler
+        self._q: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._max = queue_size
+        self.dropped = 0
+        self.received = 0
+        self._drop_log = _RateLimiter(1.0)
+        self._closed = False
+        if delivery == "channel":
+            target: Any = zenoh.handlers.FifoChannel(queue_size)
+        elif delivery == "inline":
+            put_kind = zenoh.SampleKind.PUT
+
+            def target(sample: Any) -> None:
+                self._process(sample, time.time_ns(), put_kind)
+        else:
+            target = self._on_sample
+        if history > 0:
+            import zenoh.ext as zext
+
+            self._sub = zext.declare_advanced_subscriber(
+                service.session,
+                key_expr,
+                target,
+                history=zext.HistoryConfig(detect_late_publishers=True, max_samples=history),
+            )
+        else:
+            self._sub = service.session.declare_subscriber(key_expr, target)
+        if delivery == "channel":
+            self._channel = self._sub.handler
+            run: Callable[[], None] = self._run_channel
+        else:
+            run = self._run_queue  # idle for "inline": it only ends at close()
+        self._worker = threading.Thread(target=run, name=f"sub:{self.name}", daemon=True)
+        self._worker.start()
+
+    # Zenoh receive thread ("queue" delivery): enqueue only.
+    def _on_sample(self, sample: Any) -> None:
+        recv_ns = time.time_ns()
+        if self._q.qsize() >= self._max:
+            self.dropped += 1
+            self.service.counters.add("dropped")
+            n = self._drop_log.allow()
+            if n is not None:
+                self.service.log.warning(
+                    "queue full, dropping samples",
+                    extra={"key_expr": self.key_expr, "queue_size": self._max,
+                           "suppressed": n},
+                )
+            return
+        self._q.put((sample, recv_ns))
+
+    def _process(self, sample: Any, recv_ns: int, put_kind: Any) -> None:
+        if sample.kind != put_kind:
+            return
+        ts_ns = 0
+        if self.timestamps and sample.timestamp is not None:
+            ts_ns = sample.timestamp.get_time_as_ntp64().as_nanos()
+        raw = RawSample(
+            str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), recv_ns, ts_ns
+        )
+        self.received += 1
+        try:
+            self._handler(raw)
+        except Exception as exc:
+            self.service.record_error(f"handler for {raw.key} failed: {exc!r}", exc)
+
+    def _run_queue(self) -> None:
+        import zenoh
+
+        put_kind = zenoh.SampleKind.PUT
+        get = self._q.get
+        while True:
+            item = get()
+            if item is None:
+                return
+            self._process(item[0], item[1], put_kind)
+
+    def _run_channel(self) -> None:
+        import zenoh
+
+        put_kind = zenoh.SampleKind.PUT
+        recv = self._channel.recv
+        try_recv = self._channel.try_recv
+        process = self._process
+        now = time.time_ns
+        while True:
+            try:
+                sample = try_recv()  # cheap while there is a backlog
+                if sample is None:
+                    sample = recv()  # blocks in Rust with the GIL released
+            except zenoh.ZError:  # undeclared and drained
+                return
+            process(sample, now(), put_kind)
+
+    def pending(self) -> int:
+        """Samples waiting in the queue (0 for ``channel`` delivery, which zenoh does not
+        report)."""
+        return self._q.qsize()
+
+    def close(self, drain_timeout_s: float = 10.0) -> None:
+        """Undeclare the subscriber, let the worker finish the queued samples (up to
+        ``drain_timeout_s``) and stop it."""
+        if self._closed:
+            return
+        self._closed = True
+        with contextlib.suppress(Exception):
+            self._sub.undeclare()
+        self._q.put(None)
+        self._worker.join(drain_timeout_s)
+
+
+# --------------------------------------------------------------------------------------------
+# Service
+# --------------------------------------------------------------------------------------------
+
+
+class Service:
+    """A bus service: session, logging, liveliness, status, typed pub/sub, clean shutdown.
+
+    Use as a context manager (``start()`` on enter, ``close()`` on exit) and call :meth:`run`
+    to block until a signal or :meth:`stop`.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        config: ServiceConfig,
+        *,
+        session: Any | None = None,
+        version: str | None = None,
+    ) -> None:
+        from services.bus.messages import Keys
+
+        self.name = name
+        self.config = config
+        self.keys = Keys(config.prefix)
+        self.keys.status(name)  # validates the name as a key chunk
+        self.version = version or project_version()
+        self.log = setup_logging(name, config.log_level, config.log_format)
+        self.counters = Counters()
+        self.stop_event = threading.Event()
+        self.state = ServiceStatus.STARTING
+        self.last_error = ""
+        self._error_log = _RateLimiter(1.0)
+        self._reject_log = _RateLimiter(1.0)
+        self._own_session = session is None
+        self.session = session if session is not None else open_session(config.zenoh)
+        self._subs: list[Subscription] = []
+        self._pubs: list[TypedPublisher] = []
+        self._on_close: list[Callable[[], None]] = []
+        self._others: list[Any] = []
+        self._token: Any = None
+        self._status_pub: TypedPublisher | None = None
+        self._status_thread: threading.Thread | None = None
+        self._status_seq = 0
+        self._t0 = time.monotonic()
+        self._closed = False
+        self._last_counts: dict[str, int] = {}
+        self.log.info(
+            "session open",
+            extra={"zid": str(self.session.zid()), "mode": config.zenoh.mode,
+                   "prefix": config.prefix, "version": self.version},
+        )
+
+    # -- lifecycle -----------------------------------------------------------------------------
+    def start(self) -> Service:
+        """Declare the liveliness token and start the periodic status publisher."""
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(
+                self.keys.liveliness(self.name).key
+            )
+            self._status_pub = TypedPublisher(self, self.keys.status(self.name), count=False)
+            self.state = ServiceStatus.RUNNING
+            self._status_thread = threading.Thread(
+                target=self._status_loop, name="status", daemon=True
+            )
+            self._status_thread.start()
+        return self
+
+    def __enter__(self) -> Service:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def install_signal_handlers(self) -> None:
+        """SIGINT/SIGTERM set :attr:`stop_event` (main thread only; no-op elsewhere)."""
+        if threading.current_thread() is not threading.main_thread():
+            return
+
+        def handler(signum: int, _frame: Any) -> None:
+            if self.stop_event.is_set():  # second signal: give up waiting
+                raise KeyboardInterrupt
+            self.log.info("signal received, shutting down", extra={"signal": signum})
+            self.stop_event.set()
+
+        signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGTERM, handler)
+
+    def run(self, timeout_s: float | None = None) -> None:
+        """Install the signal handlers and block until stopped (or ``timeout_s`` s), then
+        :meth:`close`."""
+        self.start()
+        self.install_signal_handlers()
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        try:
+            while not self.stop_event.is_set():
+                remaining = 0.5 if deadline is None else min(0.5, deadline - time.monotonic())
+                if remaining <= 0:
+                    break
+                self.stop_event.wait(remaining)
+        finally:
+            self.close()
+
+    def stop(self) -> None:
+        """Ask :meth:`run` to return (thread-safe)."""
+        self.stop_event.set()
+
+    def on_close(self, fn: Callable[[], None]) -> None:
+        """Register ``fn`` to run at close, after subscriptions are drained (e.g. flush a file)."""
+        self._on_close.append(fn)
+
+    def close(self) -> None:
+        """Stop subscriptions (draining their queues), run ``on_close`` hooks, publish a final
+        status, drop the liveliness token and close the session. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        self.state = ServiceStatus.STOPPING
+        self.stop_event.set()
+        for s in self._subs:
+            s.close()
+        for fn in reversed(self._on_close):
+            try:
+                fn()
+            except Exception as exc:
+                self.record_error(f"on_close hook failed: {exc!r}", exc)
+        if self._status_thread is not None:
+            self._status_thread.join(2.0)
+        if self._status_pub is not None:
+            with contextlib.suppress(Exception):
+                self._publish_status()
+        for o in self._others:
+            with contextlib.suppress(Exception):
+                o.undeclare()
+        for p in self._pubs:
+            p.close()
+        if self._token is not None:
+            with contextlib.suppress(Exception):
+                self._token.undeclare()
+        if self._own_session:
+            with contextlib.suppress(Exception):
+                self.session.close()
+        self.log.info("closed", extra=self.counters.snapshot(sum(s.received for s in self._subs)))
+
+    # -- errors --------------------------------------------------------------------------------
+    def record_error(self, text: str, exc: BaseException | None = None) -> None:
+        """Count an internal error, remember it for the status and log it (rate-limited)."""
+        self.counters.add("errors")
+        self.last_error = text
+        n = self._error_log.allow()
+        if n is not None:
+            self.log.error(text, exc_info=exc, extra={"suppressed": n})
+
+    def record_rejection(self, key: str, reason: str) -> None:
+        """Count a rejected input sample and log it (rate-limited)."""
+        self.counters.add("rejected")
+        self.last_error = f"rejected on {key}: {reason}"
+        n = self._reject_log.allow()
+        if n is not None:
+            self.log.warning("rejected sample", extra={"key": key, "reason": reason,
+                                                       "suppressed": n})
+
+    # -- pub/sub ---------------------------------------------------------------------------------
+    def publisher(self, topic: Topic, key: str | None = None) -> TypedPublisher:
+        """A publisher for ``topic`` with the topic's QoS (``key`` overrides the key, e.g. after
+        a prefix remap)."""
+        pub = TypedPublisher(self, topic, key)
+        self._pubs.append(pub)
+        return pub
+
+    def subscribe(
+        self,
+        topic: Topic,
+        callback: Callable[[Any, str], None],
+        *,
+        queue_size: int | None = None,
+        history: int | None = None,
+        delivery: str | None = None,
+    ) -> Subscription:
+        """Subscribe to ``topic`` (may be a wildcard such as ``keys.goals_all``);
+        ``callback(msg, key)`` gets the decoded message on a worker thread.
+
+        Samples whose encoding is not the topic's type, or whose bytes do not parse, are
+        counted as rejected and logged; the callback is not called. ``history`` (default: the
+        topic's QoS) asks late-joiner history from advanced publishers. ``delivery`` (default:
+        ``"channel"`` for control streams, else ``"queue"``) see :class:`Subscription`.
+        """
+        expected = topic.msg_type
+
+        def handle(raw: RawSample) -> None:
+            try:
+                msg = decode(raw.payload, raw.encoding, expected)
+            except ValueError as exc:
+                self.record_rejection(raw.key, str(exc))
+                return
+            callback(msg, raw.key)
+
+        if delivery is None:
+            delivery = "channel" if topic.qos.stream_class == StreamClass.CONTROL else "queue"
+        return self.subscribe_raw(
+            topic.key,
+            handle,
+            queue_size=queue_size,
+            history=topic.qos.history if history is None else history,
+            delivery=delivery,
+        )
+
+    def subscribe_raw(
+        self,
+        key_expr: str,
+        callback: Callable[[RawSample], None],
+        *,
+        queue_size: int | None = None,
+        history: int = 0,
+        delivery: str = "queue",
+        timestamps: bool = False,
+    ) -> Subscription:
+        """Subscribe without decoding: ``callback(RawSample)`` on a worker thread."""
+        sub = Subscription(
+            self,
+            key_expr,
+            callback,
+            queue_size=queue_size or self.config.queue_size,
+            history=history,
+            delivery=delivery,
+            timestamps=timestamps,
+        )
+        self._subs.append(sub)
+        return sub
+
+    def watch_liveliness(
+        self, services: Iterable[str] | None, on_change: Callable[[str, bool], None]
+    ) -> None:
+        """Call ``on_change(service, alive)`` when a service's liveliness token appears or
+        disappears (``services=None``: every service of the prefix). Already-alive services are
+        reported at once."""
+        import zenoh
+
+        wanted = None if services is None else set(services)
+        base = self.keys.liveliness_all.key[:-1]
+
+        def cb(sample: Any) -> None:
+            name = str(sample.key_expr)[len(base):]
+            if wanted is not None and name not in wanted:
+                return
+            try:
+                on_change(name, sample.kind == zenoh.SampleKind.PUT)
+            except Exception as exc:
+                self.record_error(f"liveliness callback failed: {exc!r}", exc)
+
+        sub = self.session.liveliness().declare_subscriber(
+            self.keys.liveliness_all.key, cb, history=True
+        )
+        self._others.append(sub)
+
+    # -- status ----------------------------------------------------------------------------------
+    def status_message(self) -> ServiceStatus:
+        """The current :class:`ServiceStatus` (not published)."""
+        c = self.counters.snapshot(sum(sub.received for sub in self._subs))
+        state = self.state
+        if state == ServiceStatus.RUNNING and self._last_counts and (
+            c["errors"] > self._last_counts.get("errors", 0)
+        ):
+            state = ServiceStatus.DEGRADED
+        self._status_seq += 1
+        return ServiceStatus(
+            stamp_ns=time.time_ns(),
+            seq=self._status_seq,
+            service=self.name,
+            state=state,
+            uptime_s=time.monotonic() - self._t0,
+            last_error=self.last_error,
+            version=self.version,
+            queued=sum(s.pending() for s in self._subs),
+            **c,
+        )
+
+    def _publish_status(self) -> None:
+        msg = self.status_message()
+        self._last_counts = {"errors": msg.errors}
+        assert self._status_pub is not None
+        self._status_pub.put(msg)
+
+    def _status_loop(self) -> None:
+        period = self.config.status_period_s
+        while not self.stop_event.wait(period):
+            try:
+                self._publish_status()
+            except Exception as exc:
+                self.record_error(f"status publication failed: {exc!r}", exc)
+
+
+def stream_class_of(topic: Topic) -> StreamClass:
+    """The delivery class of a topic (for documentation and tests)."""
+    return topic.qos.stream_class

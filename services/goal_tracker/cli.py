@@ -1,0 +1,139 @@
+"""``psm track`` (the goal tracker) and ``psm camera synth`` (the synthetic camera).
+
+Both take the common bus flags (``--config``, ``--prefix``, ``--connect``, ``--set``…) and read
+the ``[goal_tracker]`` tables of the config; source flags are shortcuts for
+``--set goal_tracker.camera.*``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+__all__ = ["register"]
+
+
+def _source_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if getattr(args, "source", None):
+        out["goal_tracker.camera.source"] = args.source
+    if getattr(args, "device", None) is not None:
+        out["goal_tracker.camera.source"] = out.get("goal_tracker.camera.source", "device")
+        out["goal_tracker.camera.device"] = args.device
+    if getattr(args, "uri", None):
+        out["goal_tracker.camera.uri"] = args.uri
+    if getattr(args, "camera_id", None):
+        out["goal_tracker.camera.camera_id"] = args.camera_id
+    if getattr(args, "goal_name", None):
+        out["goal_tracker.goal_name"] = args.goal_name
+    if getattr(args, "clock", None):
+        out["goal_tracker.synthetic.clock"] = args.clock
+    return out
+
+
+def _cmd_track(args: argparse.Namespace) -> int:
+    from psm.errors import PSMError
+    from services.bus.config import ConfigError, config_from_args
+    from services.goal_tracker.config import TrackerConfig
+    from services.goal_tracker.sources import CameraOpenError
+
+    try:
+        cfg = config_from_args(TrackerConfig, args, _source_overrides(args))
+        from services.goal_tracker.service import main
+
+        return main(cfg, max_frames=args.max_frames)
+    except (ConfigError, CameraOpenError, FileNotFoundError, PSMError) as exc:
+        print(f"psm track: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _cmd_camera_synth(args: argparse.Namespace) -> int:
+    from psm.errors import PSMError
+    from services.bus.config import ConfigError, config_from_args
+    from services.goal_tracker.config import TrackerConfig
+
+    try:
+        cfg = config_from_args(TrackerConfig, args, _source_overrides(args))
+        from services.goal_tracker.service import camera_main
+
+        return camera_main(cfg, max_frames=args.max_frames)
+    except (ConfigError, PSMError) as exc:
+        print(f"psm camera synth: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from services.goal_tracker.calibration import CalibrationError, calibrate_from_images
+
+    try:
+        result = calibrate_from_images(args.images, (args.cols, args.rows), args.square_m)
+    except (CalibrationError, FileNotFoundError) as exc:
+        print(f"psm camera calibrate: error: {exc}", file=sys.stderr)
+        return 2
+    print(result.as_toml())
+    return 0
+
+
+def register(subparsers: Any) -> None:
+    """Add ``track`` and ``camera {synth, calibrate}`` to the ``psm`` command line."""
+    from services.bus.config import add_config_arguments
+
+    p = subparsers.add_parser(
+        "track",
+        help="goal tracker: camera feed -> face detections -> 3-D goal",
+        description="Detect the person's face in a camera feed and publish the goal "
+        "(<prefix>/goals/<name>), the detections (<prefix>/vision/faces) and throttled JPEG "
+        "frames (<prefix>/camera/<id>/image).",
+    )
+    p.add_argument(
+        "--source",
+        choices=("synthetic", "device", "file", "url", "topic"),
+        help="frame source (goal_tracker.camera.source)",
+    )
+    p.add_argument("--device", type=int, help="camera device index (implies --source device)")
+    p.add_argument("--uri", help="video file or stream URL (source file / url)")
+    p.add_argument("--camera-id", help="camera id of the image topic")
+    p.add_argument("--goal-name", help="goal name: <prefix>/goals/<name>")
+    p.add_argument("--clock", choices=("wall", "arm"), help="synthetic source clock")
+    p.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = never)")
+    add_config_arguments(p)
+    p.set_defaults(func=_cmd_track)
+
+    cam = subparsers.add_parser("camera", help="camera tools: synthetic camera, calibration")
+    sub = cam.add_subparsers(dest="camera_command", metavar="CAMERA_COMMAND", required=True)
+    s = sub.add_parser(
+        "synth",
+        help="publish the synthetic camera (astronaut face on a known 3-D path)",
+        description="Publish JPEG frames of the synthetic camera on <prefix>/camera/<id>/image; "
+        "with --clock arm the frame times follow the arm's sim time.",
+    )
+    s.add_argument("--camera-id", help="camera id of the image topic")
+    s.add_argument("--clock", choices=("wall", "arm"), help="frame clock")
+    s.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = never)")
+    add_config_arguments(s)
+    s.set_defaults(func=_cmd_camera_synth)
+
+    c = sub.add_parser(
+        "calibrate",
+        help="pinhole intrinsics from chessboard images",
+        description="Estimate fx, fy, cx, cy from images of a chessboard and print them as a "
+        "[goal_tracker.camera] TOML table.",
+    )
+    c.add_argument("images", nargs="+", help="image files showing the chessboard")
+    c.add_argument("--cols", type=int, default=9, help="inner corners per row")
+    c.add_argument("--rows", type=int, default=6, help="inner corners per column")
+    c.add_argument("--square-m", type=float, default=0.025, help="square size, m")
+    c.set_defaults(func=_cmd_calibrate)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run these commands directly (``python -m services.goal_tracker.cli track ...``)."""
+    parser = argparse.ArgumentParser(prog="psm")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

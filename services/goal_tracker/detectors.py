@@ -1,0 +1,268 @@
+"""Face detectors (Haar cascade, YuNet) and the fast detection pipeline.
+
+The pipeline runs a *full* detection on a reduced-resolution copy of the frame only every
+``full_every`` frames (or when the target is lost) and, in between, an *ROI* detection around the
+predicted target box at near full resolution with a narrow size range. Every full detection is
+refined by an ROI pass too, so all boxes the filter sees have the same statistics.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from typing import Protocol
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from psm.errors import ParameterError
+from services.goal_tracker.selection import Detection, iou
+
+Image = NDArray[np.uint8]
+
+#: Default Haar model file (ships with opencv-python-headless).
+HAAR_DEFAULT = "haarcascade_frontalface_default.xml"
+
+
+class FaceDetector(Protocol):
+    """Finds faces in an image region."""
+
+    name: str
+
+    def detect(
+        self,
+        image: Image,
+        min_size: int,
+        max_size: int | None = None,
+        fine: bool = False,
+    ) -> list[Detection]:
+        """Faces in ``image`` (H×W×3 BGR uint8), boxes in that image's pixels.
+
+        Args:
+            min_size, max_size: face width range in pixels (``max_size`` None: unbounded).
+            fine: use a finer scale step (ROI refinement; slower per pixel, more precise size).
+        """
+        ...
+
+
+def _sigmoid(x: float) -> float:
+    return 1.0 / (1.0 + math.exp(-x))
+
+
+class HaarDetector:
+    """OpenCV Haar cascade. Confidence is the logistic of the cascade's last-stage weight."""
+
+    name = "haar"
+
+    def __init__(
+        self,
+        model_path: str | None = None,
+        scale_factor: float = 1.1,
+        fine_scale_factor: float = 1.1,
+        min_neighbors: int = 4,
+    ) -> None:
+        path = model_path or os.path.join(cv2.data.haarcascades, HAAR_DEFAULT)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(f"Haar cascade file not found: {path}")
+        self._cascade = cv2.CascadeClassifier()
+        try:
+            loaded = self._cascade.load(path)
+        except (cv2.error, SystemError):
+            loaded = False
+        if not loaded or self._cascade.empty():
+            raise ParameterError(f"Haar cascade file could not be loaded: {path}")
+        if not (scale_factor > 1 and fine_scale_factor > 1 and min_neighbors >= 0):
+            raise ParameterError("haar needs scale_factor > 1, fine_scale_factor > 1, min_neighbors >= 0")
+        self.scale_factor = scale_factor
+        self.fine_scale_factor = fine_scale_factor
+        self.min_neighbors = min_neighbors
+
+    def detect(
+        self, image: Image, min_size: int, max_size: int | None = None, fine: bool = False
+    ) -> list[Detection]:
+        """See :class:`FaceDetector`."""
+        gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        min_size = max(int(min_size), 24)
+        if max_size is not None and max_size < min_size:
+            return []
+        boxes, _levels, weights = self._cascade.detectMultiScale3(
+            gray,
+            scaleFactor=self.fine_scale_factor if fine else self.scale_factor,
+            minNeighbors=self.min_neighbors,
+            minSize=(min_size, min_size),
+            maxSize=(int(max_size), int(max_size)) if max_size else (0, 0),
+            outputRejectLevels=True,
+        )
+        return [
+            Detection(float(x), float(y), float(w), float(h), _sigmoid(float(wt)))
+            for (x, y, w, h), wt in zip(
+                np.asarray(boxes).reshape(-1, 4), np.asarray(weights).reshape(-1), strict=True
+            )
+        ]
+
+
+class YuNetDetector:
+    """OpenCV's YuNet CNN face detector (``cv2.FaceDetectorYN``); needs an ONNX model file."""
+
+    name = "yunet"
+
+    def __init__(self, model_path: str, score_threshold: float = 0.7, nms_threshold: float = 0.3):
+        if not model_path or not os.path.isfile(model_path):
+            raise FileNotFoundError(
+                f"YuNet model file not found: {model_path!r} (set goal_tracker.detector.model_path "
+                "to a face_detection_yunet_*.onnx file, or use detector.kind = 'haar')"
+            )
+        self._net = cv2.FaceDetectorYN.create(model_path, "", (320, 320), score_threshold, nms_threshold)
+        self._size: tuple[int, int] = (320, 320)
+
+    def detect(
+        self, image: Image, min_size: int, max_size: int | None = None, fine: bool = False
+    ) -> list[Detection]:
+        """See :class:`FaceDetector`; ``fine`` has no effect (YuNet regresses boxes directly)."""
+        h, w = image.shape[:2]
+        if (w, h) != self._size:
+            self._net.setInputSize((w, h))
+            self._size = (w, h)
+        bgr = image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+        _, faces = self._net.detect(bgr)
+        out: list[Detection] = []
+        for row in np.asarray(faces if faces is not None else []).reshape(-1, 15):
+            fw = float(row[2])
+            if fw < min_size or (max_size is not None and fw > max_size):
+                continue
+            out.append(Detection(float(row[0]), float(row[1]), fw, float(row[3]), float(row[14])))
+        return out
+
+
+def make_detector(kind: str, model_path: str | None = None, **kwargs: float) -> FaceDetector:
+    """Build the configured detector: ``"haar"`` (default model when ``model_path`` is empty) or
+    ``"yunet"`` (``model_path`` required)."""
+    if kind == "haar":
+        return HaarDetector(model_path or None, **kwargs)  # type: ignore[arg-type]
+    if kind == "yunet":
+        return YuNetDetector(model_path or "", **kwargs)
+    raise ParameterError(f"detector.kind must be 'haar' or 'yunet', got {kind!r}")
+
+
+@dataclass(frozen=True)
+class PipelineParams:
+    """Speed/accuracy knobs of :class:`DetectionPipeline`.
+
+    Attributes:
+        detect_width: width (px) the frame is resized to for a full detection.
+        full_every: run a full detection at least every this many frames (to find new faces).
+        min_face_px: smallest face width (full-frame px) a full detection looks for.
+        roi_margin: the ROI is the predicted box grown by this factor (2.0 = twice the box size).
+        roi_max_face_px: in an ROI, larger faces are searched at 1/2, 1/4… resolution so that
+            the face is at most this wide (bounds the cost of close faces).
+        roi_size_range: (min, max) face width in an ROI relative to the predicted width.
+        max_refine: how many faces of a full detection get an ROI refinement (largest first).
+    """
+
+    detect_width: int = 320
+    full_every: int = 10
+    min_face_px: int = 40
+    roi_margin: float = 2.2
+    roi_max_face_px: int = 128
+    roi_size_range: tuple[float, float] = (0.6, 1.6)
+    max_refine: int = 3
+
+    def __post_init__(self) -> None:
+        if self.detect_width < 64 or self.full_every < 1 or self.min_face_px < 8:
+            raise ParameterError("pipeline needs detect_width >= 64, full_every >= 1, min_face_px >= 8")
+        if self.roi_margin < 1.2 or self.roi_max_face_px < 48 or self.max_refine < 0:
+            raise ParameterError("pipeline needs roi_margin >= 1.2, roi_max_face_px >= 48, max_refine >= 0")
+        lo, hi = self.roi_size_range
+        if not 0.3 <= lo < 1.0 < hi <= 3.0:
+            raise ParameterError(
+                f"pipeline roi_size_range must satisfy 0.3 <= min < 1 < max <= 3, got {lo}, {hi}"
+            )
+
+
+@dataclass
+class PipelineResult:
+    """Detections of one frame (full-frame pixels) and how they were obtained."""
+
+    detections: list[Detection]
+    mode: str  #: "full" (reduced-resolution full frame, refined) or "roi"
+
+
+class DetectionPipeline:
+    """Reduced-resolution full detection + ROI tracking; see the module docstring."""
+
+    def __init__(self, detector: FaceDetector, params: PipelineParams | None = None) -> None:
+        self.detector = detector
+        self.params = params or PipelineParams()
+        self._since_full = 1 << 30
+        self.full_count = 0
+        self.roi_count = 0
+
+    def force_full(self) -> None:
+        """Make the next frame a full detection."""
+        self._since_full = 1 << 30
+
+    def full(self, frame: Image) -> list[Detection]:
+        """Full-frame detection at ``detect_width`` (boxes in full-frame pixels, unrefined)."""
+        h, w = frame.shape[:2]
+        scale = min(1.0, self.params.detect_width / w)
+        small = (
+            frame
+            if scale == 1.0
+            else cv2.resize(frame, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA)
+        )
+        min_px = max(24, round(self.params.min_face_px * scale))
+        dets = self.detector.detect(small, min_px)
+        return [Detection(d.x / scale, d.y / scale, d.w / scale, d.h / scale, d.confidence) for d in dets]
+
+    def roi(self, frame: Image, hint: Detection) -> Detection | None:
+        """Re-detect the face near ``hint`` (a full-frame box) in an ROI; None if not found."""
+        p = self.params
+        h, w = frame.shape[:2]
+        cu, cv_ = hint.centre
+        side = max(hint.w, hint.h) * p.roi_margin
+        x0, y0 = max(0, int(cu - side / 2)), max(0, int(cv_ - side / 2))
+        x1, y1 = min(w, math.ceil(cu + side / 2)), min(h, math.ceil(cv_ + side / 2))
+        if x1 - x0 < 24 or y1 - y0 < 24:
+            return None
+        crop = frame[y0:y1, x0:x1]
+        # Large faces are searched at a power-of-two reduced resolution. The scale must not
+        # follow the hint continuously: the detector's box sizes are quantised on its scale grid,
+        # and a grid that moves with the prediction would feed the prediction back into the
+        # measurement.
+        scale = 0.5 ** max(0, math.ceil(math.log2(max(hint.w, 1.0) / p.roi_max_face_px)))
+        size = (max(24, round((x1 - x0) * scale)), max(24, round((y1 - y0) * scale)))
+        if scale < 1.0:
+            crop = cv2.resize(crop, size, interpolation=cv2.INTER_AREA)
+        scale_x, scale_y = size[0] / (x1 - x0), size[1] / (y1 - y0)
+        expected = hint.w * scale
+        lo, hi = p.roi_size_range
+        dets = self.detector.detect(crop, int(expected * lo), math.ceil(expected * hi) + 1, fine=True)
+        if not dets:
+            return None
+        full = [
+            Detection(x0 + d.x / scale_x, y0 + d.y / scale_y, d.w / scale_x, d.h / scale_y, d.confidence)
+            for d in dets
+        ]
+        return max(full, key=lambda d: (iou(d.box, hint.box), -abs(d.w - hint.w)))
+
+    def process(self, frame: Image, hint: Detection | None) -> PipelineResult:
+        """Detect faces in ``frame`` (H×W×3 BGR). ``hint`` is the predicted target box or None.
+
+        ROI mode when a hint is given and a full detection is not due; falls back to a full
+        detection in the same frame when the ROI finds nothing."""
+        self._since_full += 1
+        if hint is not None and self._since_full < self.params.full_every:
+            found = self.roi(frame, hint)
+            if found is not None:
+                self.roi_count += 1
+                return PipelineResult([found], "roi")
+        self._since_full = 0
+        self.full_count += 1
+        coarse = self.full(frame)
+        refined: list[Detection] = []
+        for i, det in enumerate(sorted(coarse, key=lambda d: -d.area)):
+            better = self.roi(frame, det) if i < self.params.max_refine else None
+            refined.append(better if better is not None else det)
+        return PipelineResult(refined, "full")

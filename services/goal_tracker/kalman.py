@@ -1,0 +1,190 @@
+"""Constant-velocity Kalman filter for a 3-D point, with outlier gating and a lost timeout.
+
+State ``x = [p (3), v (3)]`` in metres and metres/second; the measurement is the position only.
+Process noise is the continuous white-acceleration model with spectral density ``q`` (m²/s³):
+
+    Q(dt) = q · [[dt³/3 I, dt²/2 I], [dt²/2 I, dt I]]
+
+Time is always the *frame* time in seconds (sim time or camera time), never the wall clock, so a
+replayed recording gives the same estimates.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.stats import chi2
+
+from psm.errors import ParameterError
+
+FloatArray = NDArray[np.float64]
+
+
+class UpdateResult(enum.Enum):
+    """What :meth:`ConstantVelocityKalman.update` did with a measurement."""
+
+    INITIALISED = "initialised"  #: first measurement (or first after lost): state reset to it
+    ACCEPTED = "accepted"  #: fused
+    REJECTED = "rejected"  #: outside the Mahalanobis gate, ignored
+    REINITIALISED = "reinitialised"  #: too many consecutive rejections: the target jumped
+
+
+@dataclass(frozen=True)
+class KalmanParams:
+    """Filter tuning.
+
+    Attributes:
+        accel_psd: q, white-acceleration spectral density (m²/s³).
+        initial_velocity_sigma: 1-σ of the velocity at initialisation (m/s).
+        gate_probability: chi-square (3 dof) probability of the Mahalanobis gate; a measurement
+            with d² above the quantile is rejected as an outlier.
+        max_consecutive_rejections: after this many rejections in a row the filter restarts from
+            the measurement (the face really moved, or the target changed).
+        lost_timeout_s: no accepted measurement for this long (frame time) → lost.
+    """
+
+    accel_psd: float = 0.5
+    initial_velocity_sigma: float = 0.5
+    gate_probability: float = 0.999
+    max_consecutive_rejections: int = 5
+    lost_timeout_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        checks = {
+            "accel_psd": self.accel_psd >= 0,
+            "initial_velocity_sigma": self.initial_velocity_sigma > 0,
+            "gate_probability": 0 < self.gate_probability < 1,
+            "max_consecutive_rejections": self.max_consecutive_rejections >= 1,
+            "lost_timeout_s": self.lost_timeout_s > 0,
+        }
+        for name, ok in checks.items():
+            value = getattr(self, name)
+            if not ok or not math.isfinite(float(value)):
+                raise ParameterError(f"kalman.{name} is out of range: {value!r}")
+
+    @property
+    def gate_d2(self) -> float:
+        """Mahalanobis-squared gate threshold (chi-square quantile, 3 dof)."""
+        return float(chi2.ppf(self.gate_probability, df=3))
+
+
+class ConstantVelocityKalman:
+    """Constant-velocity filter of one 3-D point; see the module docstring for the model."""
+
+    def __init__(self, params: KalmanParams | None = None) -> None:
+        self.params = params or KalmanParams()
+        self._gate = self.params.gate_d2
+        self.x: FloatArray = np.zeros(6)
+        self.P: FloatArray = np.eye(6)
+        self.t: float | None = None  #: time (s) of the current state, None until initialised
+        self.last_update_t: float | None = None
+        self.rejections = 0
+        self.last_d2 = 0.0
+
+    @property
+    def initialised(self) -> bool:
+        """True once a measurement has set the state (and until :meth:`reset`)."""
+        return self.t is not None
+
+    @property
+    def position(self) -> FloatArray:
+        """Estimated position (3,), metres."""
+        return self.x[:3].copy()
+
+    @property
+    def velocity(self) -> FloatArray:
+        """Estimated velocity (3,), m/s."""
+        return self.x[3:].copy()
+
+    @property
+    def position_cov(self) -> FloatArray:
+        """3×3 position covariance, m²."""
+        return self.P[:3, :3].copy()
+
+    def reset(self) -> None:
+        """Forget the state (the target is lost)."""
+        self.t = None
+        self.last_update_t = None
+        self.rejections = 0
+
+    @staticmethod
+    def transition(dt: float) -> FloatArray:
+        """F(dt), 6×6."""
+        f = np.eye(6)
+        f[:3, 3:] = dt * np.eye(3)
+        return f
+
+    def process_noise(self, dt: float) -> FloatArray:
+        """Q(dt), 6×6, for the white-acceleration model."""
+        q = self.params.accel_psd
+        i3 = np.eye(3)
+        return q * np.block([[dt**3 / 3 * i3, dt**2 / 2 * i3], [dt**2 / 2 * i3, dt * i3]])
+
+    def initialise(self, t: float, z: ArrayLike, r: ArrayLike) -> None:
+        """Start at position ``z`` (3,) with covariance ``r`` (3×3) and zero velocity."""
+        self.x = np.concatenate([np.asarray(z, dtype=float).reshape(3), np.zeros(3)])
+        self.P = np.zeros((6, 6))
+        self.P[:3, :3] = np.asarray(r, dtype=float)
+        self.P[3:, 3:] = self.params.initial_velocity_sigma**2 * np.eye(3)
+        self.t = float(t)
+        self.last_update_t = float(t)
+        self.rejections = 0
+
+    def predict(self, t: float) -> None:
+        """Propagate the state to time ``t`` (s). A ``t`` earlier than the state is ignored
+        (out-of-order frame), so time never runs backwards."""
+        if self.t is None:
+            return
+        dt = float(t) - self.t
+        if dt <= 0:
+            return
+        f = self.transition(dt)
+        self.x = f @ self.x
+        self.P = f @ self.P @ f.T + self.process_noise(dt)
+        self.t = float(t)
+
+    def mahalanobis2(self, z: ArrayLike, r: ArrayLike) -> float:
+        """d² of measurement ``z`` with covariance ``r`` against the current prediction."""
+        y = np.asarray(z, dtype=float).reshape(3) - self.x[:3]
+        s = self.P[:3, :3] + np.asarray(r, dtype=float)
+        return float(y @ np.linalg.solve(s, y))
+
+    def update(self, t: float, z: ArrayLike, r: ArrayLike) -> UpdateResult:
+        """Predict to ``t`` then fuse measurement ``z`` (3,) with covariance ``r`` (3×3), gated."""
+        z = np.asarray(z, dtype=float).reshape(3)
+        r = np.asarray(r, dtype=float).reshape(3, 3)
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(r))):
+            raise ParameterError("measurement contains NaN or inf")
+        if self.t is None:
+            self.initialise(t, z, r)
+            return UpdateResult.INITIALISED
+        self.predict(t)
+        s = self.P[:3, :3] + r
+        y = z - self.x[:3]
+        d2 = float(y @ np.linalg.solve(s, y))
+        self.last_d2 = d2
+        if d2 > self._gate:
+            self.rejections += 1
+            if self.rejections >= self.params.max_consecutive_rejections:
+                self.initialise(t, z, r)
+                return UpdateResult.REINITIALISED
+            return UpdateResult.REJECTED
+        gain = np.linalg.solve(s, self.P[:3, :]).T  # K = P Hᵀ S⁻¹ (S symmetric)
+        self.x = self.x + gain @ y
+        i_kh = np.eye(6)
+        i_kh[:, :3] -= gain
+        # Joseph form keeps P symmetric positive semi-definite.
+        self.P = i_kh @ self.P @ i_kh.T + gain @ r @ gain.T
+        self.last_update_t = float(t)
+        self.rejections = 0
+        return UpdateResult.ACCEPTED
+
+    def is_lost(self, t: float) -> bool:
+        """True when not initialised or no measurement was accepted within the lost timeout."""
+        if self.last_update_t is None:
+            return True
+        return float(t) - self.last_update_t > self.params.lost_timeout_s

@@ -1,0 +1,359 @@
+"""The goal-tracker service (``psm track``) and the synthetic camera (``psm camera synth``).
+
+Tracker inputs: frames from the configured source (synthetic, device, file, url, or the
+``<prefix>/camera/<id>/image`` topic). Outputs, per analysed frame:
+
+* ``<prefix>/vision/faces`` — :class:`FaceDetections` (pixel boxes, confidence, target index);
+* ``<prefix>/goals/<goal_name>`` — :class:`Goal` (position, covariance, valid, invalid_reason,
+  source, ``frame_stamp_ns``), and ``<prefix>/viz/goals/<goal_name>`` (foxglove PoseInFrame) when
+  valid;
+* ``<prefix>/camera/<id>/image`` — JPEG foxglove CompressedImage, at most ``image_rate_hz`` (frame
+  time), unless the frames came from that topic already.
+
+Liveliness token and status counters come from :class:`services.bus.runtime.Service`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+
+from services.bus.messages import (
+    CompressedImage,
+    FaceBox,
+    FaceDetections,
+    Goal,
+    PoseInFrame,
+    Vec3,
+)
+from services.goal_tracker.config import (
+    GoalTrackerSection,
+    TrackerConfig,
+    build_synthetic_camera,
+    build_tracker,
+)
+from services.goal_tracker.sources import (
+    CameraOpenError,
+    Frame,
+    FrameSource,
+    QueueSource,
+    SourceEndedError,
+    SyntheticSource,
+    VideoCaptureSource,
+)
+from services.goal_tracker.tracker import TrackOutput
+
+SERVICE_NAME = "goal_tracker"
+CAMERA_SERVICE_NAME = "camera_synth"
+
+
+def _timestamp(msg_ts: Any, stamp_ns: int) -> None:
+    msg_ts.seconds = stamp_ns // 1_000_000_000
+    msg_ts.nanos = stamp_ns % 1_000_000_000
+
+
+def jpeg_image(image: np.ndarray, stamp_ns: int, frame_id: str, quality: int) -> CompressedImage:
+    """A foxglove ``CompressedImage`` (JPEG) of an H×W×3 BGR frame."""
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    msg = CompressedImage(frame_id=frame_id, data=buf.tobytes(), format="jpeg")
+    _timestamp(msg.timestamp, stamp_ns)
+    return msg
+
+
+def image_stamp_ns(msg: CompressedImage) -> int:
+    """The stamp of a ``CompressedImage`` in ns."""
+    return int(msg.timestamp.seconds) * 1_000_000_000 + int(msg.timestamp.nanos)
+
+
+def faces_message(out: TrackOutput, seq: int, camera_id: str, size: tuple[int, int]) -> FaceDetections:
+    """The :class:`FaceDetections` of one tracked frame (``size`` = (width, height) px)."""
+    msg = FaceDetections(
+        stamp_ns=out.stamp_ns,
+        seq=seq,
+        frame_stamp_ns=out.stamp_ns,
+        camera_id=camera_id,
+        image_width=size[0],
+        image_height=size[1],
+        target_index=out.target_index,
+    )
+    for d in out.detections:
+        msg.boxes.append(
+            FaceBox(
+                x_px=d.x,
+                y_px=d.y,
+                w_px=d.w,
+                h_px=d.h,
+                confidence=float(min(1.0, max(0.0, d.confidence))),
+            )
+        )
+    return msg
+
+
+def goal_message(out: TrackOutput, seq: int, name: str, frame_id: str) -> Goal:
+    """The :class:`Goal` of one tracked frame. Without an estimate the position is (0, 0, 0)
+    and the covariance empty; ``valid`` is then always false."""
+    msg = Goal(
+        stamp_ns=out.stamp_ns,
+        seq=seq,
+        name=name,
+        valid=bool(out.valid),
+        invalid_reason=out.reason,
+        source=SERVICE_NAME,
+        frame_stamp_ns=out.stamp_ns,
+        frame_id=frame_id,
+    )
+    if np.all(np.isfinite(out.position)):
+        msg.position.CopyFrom(
+            Vec3(x=float(out.position[0]), y=float(out.position[1]), z=float(out.position[2]))
+        )
+        msg.covariance.extend(float(v) for v in out.covariance.reshape(-1))
+    return msg
+
+
+def pose_message(out: TrackOutput, frame_id: str) -> PoseInFrame:
+    """A foxglove ``PoseInFrame`` at the goal (identity orientation) for the 3-D panel."""
+    msg = PoseInFrame(frame_id=frame_id)
+    _timestamp(msg.timestamp, out.stamp_ns)
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = (float(v) for v in out.position)
+    msg.pose.orientation.w = 1.0
+    return msg
+
+
+def open_capture(sec: GoalTrackerSection, stop: threading.Event) -> FrameSource | None:
+    """The non-bus frame source of a config (None for ``source = "topic"``).
+
+    Raises :class:`CameraOpenError` (one line) when the device/file/URL cannot be opened."""
+    cam = sec.camera
+    if cam.source == "synthetic":
+        if sec.synthetic.clock == "arm":
+            return None  # needs the bus: built by the service once the session is open
+        return SyntheticSource(
+            build_synthetic_camera(sec),
+            sec.synthetic.fps,
+            max_frames=sec.synthetic.frames,
+            stop=stop,
+        )
+    if cam.source in ("device", "file", "url"):
+        target: int | str = cam.device if cam.source == "device" else cam.uri
+        return VideoCaptureSource(
+            target,
+            cam.source,
+            loop=cam.loop,
+            realtime=cam.realtime,
+            reconnect_initial_s=cam.reconnect_initial_s,
+            reconnect_max_s=cam.reconnect_max_s,
+            give_up_s=cam.reconnect_give_up_s,
+            stop=stop,
+        )
+    return None
+
+
+class _SimClock:
+    """Latest sim time from the arm's state (``<prefix>/arm/state``), like ROS ``/clock``."""
+
+    def __init__(self) -> None:
+        self.now_ns: int | None = None
+
+    def on_state(self, msg: Any, _key: str) -> None:
+        t = int(msg.sim_time_ns or msg.stamp_ns)
+        if self.now_ns is None or t > self.now_ns:
+            self.now_ns = t
+
+    def __call__(self) -> int | None:
+        return self.now_ns
+
+
+def _synthetic_on_bus(svc: Any, sec: GoalTrackerSection) -> SyntheticSource:
+    clock = _SimClock()
+    svc.subscribe(svc.keys.arm_state, clock.on_state, queue_size=16)
+    return SyntheticSource(
+        build_synthetic_camera(sec),
+        sec.synthetic.fps,
+        sim_clock=clock,
+        max_frames=sec.synthetic.frames,
+        stop=svc.stop_event,
+    )
+
+
+def main(config: TrackerConfig, *, max_frames: int = 0) -> int:
+    """Run the goal tracker until SIGINT/SIGTERM, the end of a file source, or ``max_frames``
+    analysed frames (0 = no limit). Returns the exit code.
+
+    Raises :class:`CameraOpenError` / ``FileNotFoundError`` before joining the bus when the
+    source or a model file cannot be opened (the CLI prints them as one line)."""
+    from services.bus.runtime import Service
+
+    sec = config.goal_tracker
+    cam = sec.camera
+    tracker = build_tracker(sec)
+    source = open_capture(sec, threading.Event())
+    svc = Service(SERVICE_NAME, config)
+    if isinstance(source, VideoCaptureSource | SyntheticSource):
+        source.stop = svc.stop_event  # SIGTERM also aborts a source's waits
+    keys = svc.keys
+    try:
+        svc.start()
+        svc.install_signal_handlers()
+        if source is None and cam.source == "synthetic":
+            source = _synthetic_on_bus(svc, sec)
+        elif source is None:
+            queue_source = QueueSource(f"topic {keys.camera_image(cam.camera_id).key}")
+
+            def on_image(msg: CompressedImage, key: str) -> None:
+                try:
+                    queue_source.push_jpeg(msg.data, image_stamp_ns(msg))
+                except ValueError as exc:
+                    svc.record_rejection(key, str(exc))
+
+            svc.subscribe(keys.camera_image(cam.camera_id), on_image)
+            source = queue_source
+        faces_pub = svc.publisher(keys.vision_faces)
+        goal_pub = svc.publisher(keys.goal(sec.goal_name))
+        pose_pub = svc.publisher(keys.goal_pose(sec.goal_name))
+        image_pub = None if cam.source == "topic" else svc.publisher(keys.camera_image(cam.camera_id))
+        svc.log.info(
+            "tracking",
+            extra={
+                "source": source.description,
+                "goal": sec.goal_name,
+                "detector": sec.detector.kind,
+            },
+        )
+        return _loop(svc, sec, tracker, source, faces_pub, goal_pub, pose_pub, image_pub, max_frames)
+    finally:
+        if source is not None:
+            source.close()
+        svc.log.info("tracker stats", extra=tracker.stats.as_dict())
+        svc.close()
+
+
+def _loop(
+    svc: Any,
+    sec: GoalTrackerSection,
+    tracker: Any,
+    source: FrameSource,
+    faces_pub: Any,
+    goal_pub: Any,
+    pose_pub: Any,
+    image_pub: Any,
+    max_frames: int,
+) -> int:
+    cam = sec.camera
+    seq = 0
+    last_image_ns: int | None = None
+    image_period_ns = round(1e9 / cam.image_rate_hz) if cam.image_rate_hz > 0 else 0
+    last_frame_wall = time.monotonic()
+    last_stamp = 0
+    stalled = False
+    frames = 0
+    last_log = time.monotonic()
+    while not svc.stop_event.is_set():
+        try:
+            frame = source.read(0.2)
+        except SourceEndedError as exc:
+            svc.log.info("source ended", extra={"reason": str(exc)})
+            return 0
+        except CameraOpenError as exc:
+            svc.record_error(str(exc))
+            _publish_invalid(goal_pub, seq, sec, last_stamp, f"camera failed: {exc}")
+            return 2
+        now = time.monotonic()
+        if frame is None:
+            if not stalled and now - last_frame_wall > cam.stall_timeout_s:
+                stalled = True
+                _publish_invalid(
+                    goal_pub,
+                    seq,
+                    sec,
+                    last_stamp,
+                    f"camera stalled: no frame for {cam.stall_timeout_s:.1f} s",
+                )
+                seq += 1
+            continue
+        last_frame_wall, stalled = now, False
+        try:
+            out = _track_frame(tracker, frame)
+        except Exception as exc:
+            svc.record_error(f"frame {frame.seq} failed: {exc!r}", exc)
+            continue
+        last_stamp = out.stamp_ns
+        h, w = frame.image.shape[:2]
+        # Highest priority first (goal, pose: DATA_HIGH; faces: DATA; image: DATA_LOW), so a
+        # later, lower-priority sample is never overtaken by an earlier, higher-priority one.
+        goal_pub.put(goal_message(out, seq, sec.goal_name, sec.mount.frame_id))
+        if out.valid:
+            pose_pub.put(pose_message(out, sec.mount.frame_id))
+        faces_pub.put(faces_message(out, seq, cam.camera_id, (w, h)))
+        if (
+            image_pub is not None
+            and image_period_ns
+            and (last_image_ns is None or out.stamp_ns - last_image_ns >= image_period_ns)
+        ):
+            image_pub.put(jpeg_image(frame.image, out.stamp_ns, cam.camera_id, cam.jpeg_quality))
+            last_image_ns = out.stamp_ns
+        seq += 1
+        frames += 1
+        if now - last_log > 10.0:
+            svc.log.info("tracker stats", extra=tracker.stats.as_dict())
+            last_log = now
+        if max_frames and frames >= max_frames:
+            return 0
+    return 0
+
+
+def _track_frame(tracker: Any, frame: Frame) -> TrackOutput:
+    h, w = frame.image.shape[:2]
+    tracker.set_image_size(w, h)
+    return tracker.process(frame.image, frame.stamp_ns)
+
+
+def _publish_invalid(goal_pub: Any, seq: int, sec: GoalTrackerSection, stamp_ns: int, reason: str) -> None:
+    goal_pub.put(
+        Goal(
+            stamp_ns=stamp_ns,
+            seq=seq,
+            name=sec.goal_name,
+            valid=False,
+            invalid_reason=reason,
+            source=SERVICE_NAME,
+            frame_stamp_ns=0,
+            frame_id=sec.mount.frame_id,
+        )
+    )
+
+
+def camera_main(config: TrackerConfig, *, max_frames: int = 0) -> int:
+    """Run the synthetic camera alone: publish JPEG frames on ``<prefix>/camera/<id>/image`` at
+    ``synthetic.fps`` (every frame, no throttling), with wall-clock or arm sim-clock frame times.
+    Stops at SIGINT/SIGTERM or after ``synthetic.frames`` / ``max_frames`` frames."""
+    from services.bus.runtime import Service
+
+    sec = config.goal_tracker
+    cam = sec.camera
+    limit = max_frames or sec.synthetic.frames
+    with Service(CAMERA_SERVICE_NAME, config) as svc:
+        svc.install_signal_handlers()
+        if sec.synthetic.clock == "arm":
+            source = _synthetic_on_bus(svc, sec)
+        else:
+            source = SyntheticSource(build_synthetic_camera(sec), sec.synthetic.fps, stop=svc.stop_event)
+        pub = svc.publisher(svc.keys.camera_image(cam.camera_id))
+        svc.log.info(
+            "publishing",
+            extra={"source": source.description, "key": svc.keys.camera_image(cam.camera_id).key},
+        )
+        sent = 0
+        while not svc.stop_event.is_set() and not (limit and sent >= limit):
+            frame = source.read(0.2)
+            if frame is None:
+                continue
+            pub.put(jpeg_image(frame.image, frame.stamp_ns, cam.camera_id, cam.jpeg_quality))
+            sent += 1
+        svc.log.info("camera done", extra={"frames": sent})
+    return 0

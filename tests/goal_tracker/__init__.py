@@ -1,0 +1,1 @@
+"""Tests of the goal tracker (services/goal_tracker)."""

@@ -1,0 +1,212 @@
+"""Frame sources: VideoCapture (file, reconnect with backoff), synthetic clocks, queue."""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+import cv2
+import numpy as np
+import pytest
+
+from services.goal_tracker.sources import (
+    CameraOpenError,
+    QueueSource,
+    SourceEndedError,
+    SyntheticSource,
+    VideoCaptureSource,
+)
+from services.goal_tracker.synthetic import SyntheticCamera
+
+
+class FakeCapture:
+    """Scripted stand-in for cv2.VideoCapture: ``opens`` decides each open attempt, ``reads``
+    how many frames a session delivers before the stream drops."""
+
+    def __init__(self, opened: bool, frames: int) -> None:
+        self.opened, self.frames = opened, frames
+
+    def isOpened(self) -> bool:  # noqa: N802 -- OpenCV's name
+        return self.opened
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        if self.frames <= 0:
+            return False, None
+        self.frames -= 1
+        return True, np.zeros((48, 64, 3), np.uint8)
+
+    def get(self, _prop: int) -> float:
+        return 0.0
+
+    def release(self) -> None:
+        self.opened = False
+
+
+def scripted(attempts: list[tuple[bool, int]]):
+    calls: list[object] = []
+
+    def opener(target: object) -> FakeCapture:
+        calls.append(target)
+        ok, n = attempts[min(len(calls) - 1, len(attempts) - 1)]
+        return FakeCapture(ok, n)
+
+    return opener, calls
+
+
+def test_unopenable_feed_is_one_clear_error() -> None:
+    opener, calls = scripted([(False, 0)])
+    with pytest.raises(CameraOpenError, match=r"cannot open url 'rtsp://cam/stream'"):
+        VideoCaptureSource("rtsp://cam/stream", "url", opener=opener)
+    assert len(calls) == 1  # no retry loop on the first open
+
+
+def test_dropped_stream_reconnects_with_backoff(monkeypatch: pytest.MonkeyPatch) -> None:
+    # session 1 delivers 2 frames; two failed reopen attempts; session 2 delivers 3 frames
+    opener, calls = scripted([(True, 2), (False, 0), (False, 0), (True, 3)])
+    waits: list[float] = []
+    stop = threading.Event()
+    monkeypatch.setattr(stop, "wait", lambda t: waits.append(t) or False)
+    src = VideoCaptureSource(
+        0, "device", opener=opener, reconnect_initial_s=0.1, reconnect_max_s=0.3, give_up_s=0, stop=stop
+    )
+    frames = [src.read() for _ in range(6)]
+    got = [f for f in frames if f is not None]
+    assert len(got) == 5 and [f.seq for f in got] == [0, 1, 2, 3, 4]
+    assert waits == [0.1, 0.2, 0.3]  # exponential backoff, capped
+    assert len(calls) == 4 and src.reconnects == 3
+
+
+def test_stream_down_too_long_gives_up(monkeypatch: pytest.MonkeyPatch) -> None:
+    opener, _ = scripted([(True, 1), (False, 0)])
+    src = VideoCaptureSource(
+        0, "device", opener=opener, reconnect_initial_s=0.01, reconnect_max_s=0.02, give_up_s=0.1
+    )
+    assert src.read() is not None
+    with pytest.raises(CameraOpenError, match="no reconnect within"):
+        for _ in range(3):
+            src.read()
+
+
+@pytest.fixture(scope="module")
+def video_file(tmp_path_factory: pytest.TempPathFactory) -> tuple[str, list[np.ndarray]]:
+    path = str(tmp_path_factory.mktemp("video") / "synthetic.avi")
+    cam = SyntheticCamera()
+    writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (640, 480))
+    assert writer.isOpened()
+    frames = [cam.render(k / 30) for k in range(12)]
+    for f in frames:
+        writer.write(f)
+    writer.release()
+    return path, frames
+
+
+def test_file_source_reads_all_frames_then_ends(video_file: tuple) -> None:
+    path, frames = video_file
+    src = VideoCaptureSource(path, "file", realtime=False)
+    got = []
+    with pytest.raises(SourceEndedError):
+        for _ in range(50):
+            got.append(src.read())
+    assert len(got) == len(frames)
+    stamps = [f.stamp_ns for f in got]
+    assert np.all(np.diff(stamps) > 0)
+    # MJPEG round trip: close to the rendered frame
+    assert np.abs(got[3].image.astype(int) - frames[3]).mean() < 4.0
+
+
+def test_file_source_loops(video_file: tuple) -> None:
+    path, frames = video_file
+    src = VideoCaptureSource(path, "file", realtime=False, loop=True)
+    got = [src.read() for _ in range(2 * len(frames) + 2)]
+    assert sum(f is not None for f in got) == 2 * len(frames)  # one None per restart
+    stamps = [f.stamp_ns for f in got if f is not None]
+    assert np.all(np.diff(stamps) > 0)
+
+
+def test_missing_file_is_one_clear_error(tmp_path) -> None:
+    with pytest.raises(CameraOpenError, match="cannot open file"):
+        VideoCaptureSource(str(tmp_path / "none.mp4"), "file")
+
+
+def test_synthetic_sim_clock_is_deterministic() -> None:
+    cam = SyntheticCamera()
+    now = {"t": None}
+    src = SyntheticSource(cam, 30.0, sim_clock=lambda: now["t"], max_frames=3)
+    assert src.read(0.01) is None  # no sim time yet
+    now["t"] = 70_000_000  # 70 ms of sim time: frames 0, 1, 2 (0, 33.3, 66.7 ms) are due
+    got = [src.read(0.01) for _ in range(3)]
+    assert [f.stamp_ns for f in got] == [0, 33_333_333, 66_666_667]
+    np.testing.assert_array_equal(got[1].image, cam.render(1 / 30))
+    with pytest.raises(SourceEndedError):
+        src.read(0.01)
+
+
+def test_synthetic_wall_clock_paces_frames() -> None:
+    src = SyntheticSource(SyntheticCamera(noise_sigma=0), 50.0)
+    got = [src.read(1.0) for _ in range(4)]
+    assert [f.seq for f in got] == [0, 1, 2, 3]
+    assert np.diff([f.stamp_ns for f in got]).tolist() == [20_000_000] * 3
+
+
+def test_queue_source_keeps_order_and_rejects_garbage() -> None:
+    q = QueueSource("test")
+    _, buf = cv2.imencode(".jpg", np.full((8, 8, 3), 100, np.uint8))
+    q.push_jpeg(buf.tobytes(), 5)
+    q.push_jpeg(buf.tobytes(), 7)
+    with pytest.raises(ValueError, match="cannot decode"):
+        q.push_jpeg(b"not a jpeg", 9)
+    assert [q.read(0.1).stamp_ns, q.read(0.1).stamp_ns] == [5, 7]
+    assert q.read(0.01) is None
+
+
+class _MjpegHandler(BaseHTTPRequestHandler):
+    """Serves ``server.frames`` JPEG frames as an HTTP MJPEG stream, then closes the stream."""
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+    def do_GET(self) -> None:
+        self.send_response(200)
+        self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+        self.end_headers()
+        try:
+            for k in range(self.server.frames):  # type: ignore[attr-defined]
+                jpg = self.server.jpegs[k % len(self.server.jpegs)]  # type: ignore[attr-defined]
+                head = b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(jpg)
+                self.wfile.write(head + jpg + b"\r\n")
+                time.sleep(0.01)
+        except (BrokenPipeError, ConnectionResetError):
+            pass
+
+
+def test_network_stream_reads_and_reconnects_after_a_drop() -> None:
+    """A real HTTP MJPEG stream on 127.0.0.1 that drops the connection every 15 frames."""
+    cam = SyntheticCamera(noise_sigma=0.0)
+    rendered = [cam.render(k / 30) for k in range(5)]
+    server = ThreadingHTTPServer(("127.0.0.1", 0), _MjpegHandler)
+    server.frames = 15  # type: ignore[attr-defined]
+    server.jpegs = [cv2.imencode(".jpg", f)[1].tobytes() for f in rendered]  # type: ignore[attr-defined]
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        url = f"http://127.0.0.1:{server.server_address[1]}/stream.mjpg"
+        src = VideoCaptureSource(url, "url", reconnect_initial_s=0.05, give_up_s=10.0)
+        got = [src.read() for _ in range(34)]
+        src.close()
+    finally:
+        server.shutdown()
+        server.server_close()
+    frames = [f for f in got if f is not None]
+    assert src.reconnects >= 2 and len(frames) >= 30
+    assert np.abs(frames[1].image.astype(int) - rendered[1]).mean() < 4.0
+    assert np.all(np.diff([f.stamp_ns for f in frames]) > 0)
+
+
+def test_unreachable_stream_is_one_clear_error() -> None:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # bound but not listening: connection refused
+        with pytest.raises(CameraOpenError, match="cannot open url"):
+            VideoCaptureSource(f"http://127.0.0.1:{port}/stream.mjpg", "url")
