@@ -179,15 +179,36 @@ def run_dmp(dmp: Any, x0: FloatArray, step_function: str = "rk4-cython") -> Run:
     return Run(t=np.asarray(T, float), x=np.asarray(Y, float), done=True, wall_s=wall)
 
 
-def _median_time(fn: Callable[[], Any], repeats: int) -> tuple[float, Any]:
-    """Median wall time [s] of ``repeats`` calls (after one untimed warm-up call)."""
-    out = fn()
-    times = []
+def _fit_interleaved(
+    fitters: dict[str, Callable[[], Any]], repeats: int
+) -> dict[str, tuple[float | None, Any, str | None]]:
+    """Fit with every learner; median wall time [s] of ``repeats`` timed calls each.
+
+    One untimed warm-up call per learner first; the timed calls alternate between the
+    learners so that load drifts on a shared machine hit them alike. A learner that raises is
+    reported as ``(None, None, message)`` and not timed further.
+
+    Returns:
+        Per learner ``(median fit time [s], fitted model, error message or None)``.
+    """
+    models: dict[str, Any] = {}
+    errors: dict[str, str] = {}
+    for name, fn in fitters.items():
+        try:
+            models[name] = fn()
+        except Exception as exc:  # a failing learner is a result, not a crash
+            errors[name] = f"fit failed: {type(exc).__name__}: {exc}"
+    times: dict[str, list[float]] = {k: [] for k in models}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times), out
+        for name in models:
+            t0 = time.perf_counter()
+            models[name] = fitters[name]()
+            times[name].append(time.perf_counter() - t0)
+    out: dict[str, tuple[float | None, Any, str | None]] = {
+        k: (statistics.median(times[k]), models[k], None) for k in models
+    }
+    out.update({k: (None, None, msg) for k, msg in errors.items()})
+    return out
 
 
 # ---------------------------------------------------------------------------- accuracy
@@ -225,16 +246,15 @@ def evaluate_shape(
         "methods": {},
     }
     traj: dict[str, Any] = {"demos": [d.x for d in demos], "runs": {}}
+    fitters: dict[str, Callable[[], Any]] = {"psm": lambda: fit_psm(demo0)}
+    for method, n_w in DMP_WEIGHTS.items():
+        fitters[method] = lambda n_w=n_w: fit_dmp(demo0, n_w)
+    fitted = _fit_interleaved(fitters, repeats)
     for method in METHODS:
         entry: dict[str, Any] = {"runs": [], "problems": []}
-        try:
-            if method == "psm":
-                fit_s, model = _median_time(lambda: fit_psm(demo0), repeats)
-            else:
-                n_w = DMP_WEIGHTS[method]
-                fit_s, model = _median_time(lambda n_w=n_w: fit_dmp(demo0, n_w), repeats)
-        except Exception as exc:  # a failing learner is a result, not a crash
-            entry["problems"].append(f"fit failed: {type(exc).__name__}: {exc}")
+        fit_s, model, fit_error = fitted[method]
+        if fit_error is not None:
+            entry["problems"].append(fit_error)
             entry["fit_s"] = None
             result["methods"][method] = entry
             continue
@@ -334,8 +354,7 @@ def aggregate(shapes: dict[str, dict[str, Any]]) -> dict[str, Any]:
             cell: dict[str, Any] = {}
             for method in METHODS:
                 vals = [
-                    s["methods"][method].get("summary", {}).get(cond, {}).get(metric)
-                    for s in shapes.values()
+                    s["methods"][method].get("summary", {}).get(cond, {}).get(metric) for s in shapes.values()
                 ]
                 good = [v for v in vals if v is not None]
                 cell[method] = {
@@ -680,7 +699,8 @@ and condition as "more than half of the shapes".
 
 **Speed.** Same process, same run, wall-clock `time.perf_counter[_ns]`:
 - *fit vs imitate*: median over repeats of `PhaseSpaceModel.fit` vs `DMP.imitate` (incl.
-  construction) on the same demo (one untimed warm-up call first).
+  construction) on the same demo; one untimed warm-up call each, then the timed calls
+  alternate between the learners.
 - *step*: per-call time of `controller.step(x, v, dt)` vs `DMP.step(y, yd,
   step_function=...)` in a closed loop on a 2 s minimum-jerk reach sampled at 2 ms, D = 1 and
   D = 3; the state update between calls is not timed; warm-up calls are discarded; garbage
@@ -833,9 +853,7 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
         "ignored), with the rollout time and position where it happens."
     )
     L.append("")
-    L.append(
-        "| shape | PSM Fréchet | DMP-50 Fréchet | worst path deviation | at t [s] | at x [mm] |"
-    )
+    L.append("| shape | PSM Fréchet | DMP-50 Fréchet | worst path deviation | at t [s] | at x [mm] |")
     L.append("|---|---|---|---|---|---|")
     worst = []
     for name, s in shapes.items():
@@ -881,8 +899,7 @@ def build_targets(agg: dict[str, Any], speed: dict[str, Any] | None) -> list[dic
         for key, row in speed["step"].items():
             targets.append(
                 {
-                    "target": f"PSM step ≤ {STEP_TARGET_RATIO}× DMP step (rk4-cython), "
-                    f"D = {key[1:]}",
+                    "target": f"PSM step ≤ {STEP_TARGET_RATIO}× DMP step (rk4-cython), D = {key[1:]}",
                     "measured": f"{row['psm']['median_us']:.1f} µs vs "
                     f"{row[row['reference']]['median_us']:.1f} µs → ×{row['ratio']:.3f}",
                     "met": bool(row["target_met"]),

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter1d
+from scipy.signal import fftconvolve
 
 from psm.errors import DemonstrationError, ParameterError
 from psm.pstf import K_MAX_FRACTION, coefficient_c, k_for_duration, k_limit, propagate, time_to_reach
@@ -128,12 +129,26 @@ def smooth(t: NDArray, X: NDArray, sigma: float) -> SmoothedDemo:
         head = 2.0 * X[0] - X[pad:0:-1]
         tail = 2.0 * X[-1] - X[-2 : -pad - 2 : -1]
         padded = np.concatenate([head, X, tail])
-        x = gaussian_filter1d(padded, sigma / dt, axis=0, mode="nearest")[pad : pad + X.shape[0]]
+        x = _gaussian_smooth(padded, sigma / dt)[pad : pad + X.shape[0]]
     else:
         x = X.copy()
     v = np.gradient(x, dt, axis=0)
     a = np.gradient(v, dt, axis=0)
     return SmoothedDemo(t=t, x=x, v=v, a=a, dt=dt)
+
+
+def _gaussian_smooth(X: NDArray, sigma_samples: float) -> NDArray:
+    """Gaussian smoothing of ``X (T, D)`` along time with ``sigma_samples``; the kernel is truncated
+    at 4 sigma. Long kernels are applied by FFT (O(T log T)), short ones directly; the edges are the
+    caller's (the samples beyond the ends are taken as equal to the end samples)."""
+    radius = int(4.0 * sigma_samples + 0.5)
+    if radius < 16 or X.shape[0] < 4 * radius:
+        return gaussian_filter1d(X, sigma_samples, axis=0, mode="nearest")
+    u = np.arange(-radius, radius + 1, dtype=float)
+    kernel = np.exp(-0.5 * (u / sigma_samples) ** 2)
+    kernel /= kernel.sum()
+    padded = np.concatenate([np.repeat(X[:1], radius, axis=0), X, np.repeat(X[-1:], radius, axis=0)])
+    return fftconvolve(padded, kernel[:, None], mode="valid", axes=0)
 
 
 def turning_points(x: NDArray, tolerance: float) -> list[int]:
@@ -191,16 +206,27 @@ class _PrefixSums:
 
     def slope(self, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float) -> float:
         """Unclamped least-squares ``k`` [1/s²] over samples ``i..j`` with the given end states."""
+        return self.line(i, j, x_c, v_c, x_n, v_n, math.inf)[0]
+
+    def line(
+        self, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float, k_cap: float
+    ) -> tuple[float, float]:
+        """Scalar :meth:`fit` of one range: ``(k, sse)`` with ``k`` clamped to ``k_cap``."""
         n = j - i + 1
         delta = x_n - x_c
         if delta == 0.0:
-            return -math.inf
+            return -math.inf, math.inf
         c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
         m = 0.5 * (x_c + x_n)
-        sx = self.sx[j + 1] - self.sx[i]
-        num = self.sxa[j + 1] - self.sxa[i] - m * (self.sa[j + 1] - self.sa[i]) - c0 * sx + n * c0 * m
-        den = self.sxx[j + 1] - self.sxx[i] - 2.0 * m * sx + n * m * m
-        return float(num / den) if den > 0.0 else -math.inf
+        sx = float(self.sx[j + 1] - self.sx[i])
+        sa = float(self.sa[j + 1] - self.sa[i])
+        num = float(self.sxa[j + 1] - self.sxa[i]) - m * sa - c0 * sx + n * c0 * m
+        den = float(self.sxx[j + 1] - self.sxx[i]) - 2.0 * m * sx + n * m * m
+        if den <= 0.0:
+            return -math.inf, math.inf
+        k = min(num / den, k_cap)
+        sse = float(self.saa[j + 1] - self.saa[i]) - 2.0 * c0 * sa + n * c0 * c0 - 2.0 * k * num + k * k * den
+        return k, max(sse, 0.0)
 
     def fit(
         self,
@@ -298,6 +324,19 @@ class _Segmenter:
         x_model = np.where(elapsed <= time_to_reach(x_c, v_c, x_n, v_n, k), x_model, x_n)
         return float(np.max(np.abs(x_model - self.x[idx])))
 
+    def error(self, lo: int, hi: int, tolerance: float) -> float:
+        """The segment's :meth:`deviation`, skipped (0) when a cheap O(1) estimate already shows it
+        within ``tolerance``: an RMS acceleration residual ``e`` of the best line over a segment of
+        duration ``T`` bends the path by about ``e T²/8``, so ``2 e T²/8 ≤ tolerance`` (a factor 2
+        of safety) accepts it without computing the PSTF. Noise inflates ``e``, so the shortcut
+        never accepts a noisy segment the exact test would reject."""
+        x_c, v_c, x_n, v_n = self.boundary(lo, hi)
+        _, sse = self.sums.line(lo, hi, x_c, v_c, x_n, v_n, k_limit(v_c, v_n, x_n - x_c, self.kappa(lo, hi)))
+        duration = (hi - lo) * self.dt
+        if 2.0 * math.sqrt(sse / (hi - lo + 1)) * duration * duration / 8.0 <= tolerance:
+            return 0.0
+        return self.deviation(lo, hi)
+
     def split_sse(self, lo: int, hi: int, cand: NDArray) -> NDArray:
         """Residual sums of squares of the acceleration line fits of ``lo..c`` plus ``c..hi`` for every
         candidate cut ``c`` in ``cand`` (one vectorised evaluation)."""
@@ -330,7 +369,7 @@ def auto_cuts(
     """
     x = segmenter.x
     cuts = sorted(set(cuts))
-    error = {lo: segmenter.deviation(lo, hi) for lo, hi in itertools.pairwise(cuts)}
+    error = {lo: segmenter.error(lo, hi, tolerance) for lo, hi in itertools.pairwise(cuts)}
     blocked: set[int] = set()
     while len(cuts) - 1 < max_segments:
         worst, worst_err = -1, tolerance
@@ -351,8 +390,8 @@ def auto_cuts(
             cand = cand[:: math.ceil(cand.size / 128)]
         s = int(cand[int(np.argmin(segmenter.split_sse(lo, hi, cand)))])
         cuts.insert(worst + 1, s)
-        error[lo] = segmenter.deviation(lo, s)
-        error[s] = segmenter.deviation(s, hi)
+        error[lo] = segmenter.error(lo, s, tolerance)
+        error[s] = segmenter.error(s, hi, tolerance)
     return cuts
 
 
