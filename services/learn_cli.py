@@ -169,32 +169,57 @@ def cmd_rollout(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_demo(args: argparse.Namespace) -> int:
-    """``psm demo``: learn from a synthetic 3-D reach and show goal adaptation and a push."""
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+#: The committed kinesthetic demonstration the demo learns from (repository checkout).
+DEMO_RECORDING = Path(__file__).resolve().parents[1] / "data" / "demos" / "reach_person.mcap"
+
+
+def _synthetic_reach() -> tuple[np.ndarray, np.ndarray]:
+    """A 2 s, 3-D minimum-jerk reach at 500 Hz with 50 µm noise: ``t (T,)`` [s], ``X (T, 3)`` [m]."""
     t = np.arange(0.0, 2.0 + 1e-9, 0.002)
     s = np.clip(t / 2.0, 0, 1)
     s = 10 * s**3 - 15 * s**4 + 6 * s**5
-    rng = np.random.default_rng(0)
     X = np.stack([0.4 * s, 0.2 * np.sin(np.pi * s), 0.1 * np.sin(2 * np.pi * s)], axis=1)
-    X = X + rng.normal(0.0, 5e-5, X.shape)
+    return t, X + np.random.default_rng(0).normal(0.0, 5e-5, X.shape)
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    """``psm demo``: learn the feeding task's last sub-task (reach the person) from its committed
+    kinesthetic recording, then show goal adaptation, a goal that moves mid-motion and a push."""
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if DEMO_RECORDING.exists():
+        t, X, names = load_demonstration(DEMO_RECORDING)
+        source = f"{DEMO_RECORDING.name} (joint states -> forward kinematics)"
+    else:  # installed without the repository's data folder
+        (t, X), names = _synthetic_reach(), ["x", "y", "z"]
+        source = "a synthetic minimum-jerk reach"
     model = PhaseSpaceModel.fit(t, X)
     model.save(out / "model.json")
-    names = ["x", "y", "z"]
-    plot_rollout(out / "reproduction.png", model.rollout(dt=0.002), model, names, (t, X))
-    g0, g1 = model.goal, model.goal + np.array([0.1, -0.08, 0.05])
-    moving = model.rollout(dt=0.002, goal_fn=lambda s: g0 if s < 0.8 else g1)
+    dt = float(np.median(np.diff(t)))
+    plot_rollout(out / "reproduction.png", model.rollout(dt=dt), model, names, (t, X))
+    # The person sits 10 cm further left and 5 cm lower than in the demonstration.
+    moved = model.goal + np.array([0.0, 0.10, -0.05])
+    plot_rollout(out / "goal_adapted.png", model.rollout(dt=dt, goal=moved), model, names, (t, X))
+    # The person moves while the arm is on its way (at 40 % of the motion).
+    t_move = 0.4 * model.duration
+    g0 = model.goal
+    moving = model.rollout(dt=dt, goal_fn=lambda s: g0 if s < t_move else moved)
     plot_rollout(out / "goal_moved.png", moving, model, names, (t, X))
+    push_step = round(0.3 * model.duration / dt)
 
     def push(s: float, x: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        if round(s / 0.002) == 350:  # one shove at t = 0.7 s
+        if round(s / dt) == push_step:  # one shove against the motion along y
             v = v.copy()
-            v[0] = -0.5
+            v[1] -= 0.3
         return x, v
 
-    plot_rollout(out / "pushed.png", model.rollout(dt=0.002, disturbance=push), model, names, (t, X))
-    print(f"{model!r}; plots and model written to {out}/")
+    pushed = model.rollout(dt=dt, disturbance=push)
+    plot_rollout(out / "pushed.png", pushed, model, names, (t, X))
+    print(f"learned {model!r} from {source}")
+    for label, r in (("goal moved", moving), ("pushed", pushed)):
+        print(f"  {label}: reached the goal: {r.done}, in {r.t[-1]:.2f} s, "
+              f"final error {np.linalg.norm(r.x[-1] - r.goal[-1]) * 1e3:.2f} mm")
+    print(f"plots and model written to {out}/")
     return 0
 
 
@@ -223,6 +248,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--csv", help="write the rollout (t, x, v, a) as CSV")
     p.set_defaults(func=cmd_rollout)
 
-    p = subparsers.add_parser("demo", help="learn -> rollout demo writing plots (no bus needed)")
+    p = subparsers.add_parser("demo", help="learn a committed demonstration, adapt it, write plots")
     p.add_argument("--out", default="out/demo", help="output folder")
     p.set_defaults(func=cmd_demo)

@@ -62,5 +62,6 @@ def test_bad_input_is_one_clear_line(tmp_path: Path) -> None:
 def test_demo_writes_plots(tmp_path: Path) -> None:
     r = run_psm("demo", "--out", str(tmp_path / "demo"))
     assert r.returncode == 0, r.stderr
-    for name in ("model.json", "reproduction.png", "goal_moved.png", "pushed.png"):
+    assert "reach_person.mcap" in r.stdout and "reached the goal: True" in r.stdout
+    for name in ("model.json", "reproduction.png", "goal_adapted.png", "goal_moved.png", "pushed.png"):
         assert (tmp_path / "demo" / name).exists()
