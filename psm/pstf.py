@@ -161,11 +161,15 @@ def time_to_reach(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> f
         return math.inf
     speed_sum = abs(v_c) + abs(v_n)
     t0 = 2.0 * abs(delta) / speed_sum if speed_sum > 0.0 else math.inf
-    if t0 != math.inf and abs(k) * t0 * t0 < K_ZERO_TOL:
+    return _travel_time(delta, (v_n * v_n - v_c * v_c) / (2.0 * delta), v_c, v_n, k, t0)
+
+
+def _travel_time(delta: float, c0: float, v_c: float, v_n: float, k: float, t0: float) -> float:
+    """The closed-form time of a segment already known to be stable (no checks: hot loops).
+
+    ``c0`` is the mid-point acceleration, ``t0 = 2|Δ|/(|v_c|+|v_n|)`` the ``k = 0`` time."""
+    if k == 0.0 or (t0 != math.inf and abs(k) * t0 * t0 < K_ZERO_TOL):
         return t0
-    if k == 0.0:
-        return t0
-    c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
     a_c = c0 - 0.5 * k * delta
     a_n = c0 + 0.5 * k * delta
     if k > 0.0:
@@ -176,13 +180,9 @@ def time_to_reach(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> f
             return math.inf
         return max(math.log(ratio) / w, 0.0)
     w = math.sqrt(-k)
-    theta_c = math.atan2(-v_c * w, -a_c)
-    theta_n = math.atan2(-v_n * w, -a_n)
-    dtheta = (theta_n - theta_c) % (2.0 * math.pi)
+    dtheta = (math.atan2(-v_n * w, -a_n) - math.atan2(-v_c * w, -a_c)) % (2.0 * math.pi)
     # A monotone segment covers at most half a period; 2π − ε only arises from rounding near 0.
-    if dtheta > 1.5 * math.pi:
-        dtheta = 0.0
-    return dtheta / w
+    return 0.0 if dtheta > 1.5 * math.pi else dtheta / w
 
 
 def k_for_duration(
@@ -203,19 +203,7 @@ def k_for_duration(
     t0 = 2.0 * abs(delta) / (abs(v_c) + abs(v_n)) if v_c or v_n else math.inf
 
     def excess_time(k: float) -> float:
-        # time_to_reach for this fixed, stable segment, without its validity checks (hot loop)
-        if t0 != math.inf and abs(k) * t0 * t0 < K_ZERO_TOL:
-            return t0 - duration
-        a_c = c0 - 0.5 * k * delta
-        a_n = c0 + 0.5 * k * delta
-        if k > 0.0:
-            w = math.sqrt(k)
-            p_c, q_c = a_c / w + v_c, a_c / w - v_c
-            ratio = (a_n / w + v_n) / p_c if abs(p_c) >= abs(q_c) else q_c / (a_n / w - v_n)
-            return (math.log(ratio) / w if ratio > 0.0 else math.inf) - duration
-        w = math.sqrt(-k)
-        dtheta = (math.atan2(-v_n * w, -a_n) - math.atan2(-v_c * w, -a_c)) % (2.0 * math.pi)
-        return (0.0 if dtheta > 1.5 * math.pi else dtheta / w) - duration
+        return _travel_time(delta, c0, v_c, v_n, k, t0) - duration
 
     if time_to_reach(x_c, v_c, x_n, v_n, k_high) <= duration:
         return k_high

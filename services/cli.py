@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from psm.errors import PSMError
 
@@ -41,11 +41,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the ``psm`` command line; returns the process exit code."""
-    parser = build_parser()
+def dispatch(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> int:
+    """Parse ``argv`` with ``parser`` and run the chosen sub-command: a user error (bad file,
+    config or shape) is one line on stderr and exit code 2, never a traceback."""
     args = parser.parse_args(argv)
-    if args.version:
+    if getattr(args, "version", False):
         from importlib.metadata import version
 
         print(version("psm-dataflow"))
@@ -58,9 +58,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except (PSMError, CLIError, OSError, ValueError) as exc:
-        # The edge: a user error is one clear line, not a traceback.
-        print(f"psm {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{parser.prog} {args.command}: error: {exc}", file=sys.stderr)
         return 2
+
+
+def module_main(
+    register: Callable[[argparse._SubParsersAction], None], prog: str,
+    argv: Sequence[str] | None = None,
+) -> int:
+    """Run one module's sub-commands on their own (``python -m services.<module> ...``)."""
+    parser = argparse.ArgumentParser(prog=prog)
+    register(parser.add_subparsers(dest="command", metavar="COMMAND", required=True))
+    return dispatch(parser, argv)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the ``psm`` command line; returns the process exit code."""
+    return dispatch(build_parser(), argv)
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -3,7 +3,6 @@ command line (same flags as ``psm arm`` / ``psm teach``)."""
 
 from __future__ import annotations
 
-import argparse
 import sys
 from collections.abc import Sequence
 
@@ -11,20 +10,9 @@ from collections.abc import Sequence
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse ``argv`` and run ``arm`` or ``teach``; returns the exit code."""
     from services.arm.cli import register
-    from services.cli import CLIError
+    from services.cli import module_main
 
-    parser = argparse.ArgumentParser(prog="python -m services.arm")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    register(sub)
-    args = parser.parse_args(argv)
-    try:
-        return int(args.func(args) or 0)
-    except KeyboardInterrupt:
-        return 130
-    except (ValueError, FileNotFoundError, CLIError) as exc:
-        print(f"{parser.prog} {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-
+    return module_main(register, "python -m services.arm", argv)
 
 if __name__ == "__main__":
     sys.exit(main())

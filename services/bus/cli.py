@@ -161,11 +161,9 @@ def register(subparsers: Any) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run a bus sub-command directly (``python -m services.bus.cli record ...``)."""
-    parser = argparse.ArgumentParser(prog="psm")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    return int(args.func(args) or 0)
+    from services.cli import module_main
 
+    return module_main(register, "python -m services.bus.cli", argv)
 
 if __name__ == "__main__":
     sys.exit(main())

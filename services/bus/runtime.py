@@ -510,6 +510,7 @@ class Service:
         self.log = setup_logging(name, config.log_level, config.log_format)
         self.counters = Counters()
         self.stop_event = threading.Event()
+        self._stop_signal: int | None = None  # set by the SIGINT/SIGTERM handler
         self.state = ServiceStatus.STARTING
         self.last_error = ""
         self._error_log = _RateLimiter(1.0)
@@ -560,10 +561,14 @@ class Service:
             return
 
         def handler(signum: int, _frame: Any) -> None:
+            # Set the event first and do nothing that can fail or block: the handler runs between
+            # two bytecodes of the main thread, which may be writing to stderr itself (a log line
+            # written here would then raise "reentrant call" before the event was set, and the
+            # service would never stop). The shutdown is logged by close().
             if self.stop_event.is_set():  # second signal: give up waiting
                 raise KeyboardInterrupt
-            self.log.info("signal received, shutting down", extra={"signal": signum})
             self.stop_event.set()
+            self._stop_signal = signum
 
         signal.signal(signal.SIGINT, handler)
         signal.signal(signal.SIGTERM, handler)
@@ -597,6 +602,8 @@ class Service:
         if self._closed:
             return
         self._closed = True
+        if self._stop_signal is not None:
+            self.log.info("signal received, shutting down", extra={"signal": self._stop_signal})
         self.state = ServiceStatus.STOPPING
         self.stop_event.set()
         for s in self._subs:
