@@ -29,7 +29,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.signal import fftconvolve
 
 from psm.errors import DemonstrationError, ParameterError
-from psm.pstf import K_MAX_FRACTION, coefficient_c, k_for_duration, k_limit, propagate, time_to_reach
+from psm.pstf import K_MAX_FRACTION, coefficient_c, k_for_duration, k_limit, position, time_to_reach
 
 #: Fewest samples a demonstration may have.
 MIN_SAMPLES = 8
@@ -316,13 +316,17 @@ class _Segmenter:
         x_c, v_c, x_n, v_n = self.boundary(lo, hi)
         k = self.slope(lo, hi)
         c = coefficient_c(x_c, v_c, x_n, v_n, k)
-        # At most ~64 evenly spaced samples: the deviation is smooth at the sample scale.
-        idx = np.arange(lo, hi + 1, max(1, (hi - lo) // 64))
-        elapsed = self.t[idx] - self.t[lo]
-        x_model, _ = propagate(elapsed, x_c, v_c, k, c)
-        # Past its arrival the PSTF would continue; the chain moves on to the next segment.
-        x_model = np.where(elapsed <= time_to_reach(x_c, v_c, x_n, v_n, k), x_model, x_n)
-        return float(np.max(np.abs(x_model - self.x[idx])))
+        t_end = time_to_reach(x_c, v_c, x_n, v_n, k)
+        # At most ~32 evenly spaced samples (the deviation is smooth at the sample scale), on
+        # Python floats: this runs a dozen times per dimension and numpy's per-call cost dominates.
+        t0 = float(self.t[lo])
+        worst = 0.0
+        for i in range(lo, hi + 1, max(1, (hi - lo) // 32)):
+            elapsed = float(self.t[i]) - t0
+            # Past its arrival the PSTF would continue; the chain moves on to the next segment.
+            x_model = position(elapsed, x_c, v_c, k, c) if elapsed <= t_end else x_n
+            worst = max(worst, abs(x_model - float(self.x[i])))
+        return worst
 
     def error(self, lo: int, hi: int, tolerance: float) -> float:
         """The segment's :meth:`deviation`, skipped (0) when a cheap O(1) estimate already shows it

@@ -141,6 +141,23 @@ def propagate(
     return x, v
 
 
+def position(t: float, x_c: float, v_c: float, k: float, c: float) -> float:
+    """:func:`propagate` for one time ``t`` [s] on Python floats (no numpy: hot loops)."""
+    z = k * t * t
+    if abs(z) < _Z_SERIES:
+        s_ = 1.0 + z / 6.0 + z * z / 120.0
+        g_ = 0.5 + z / 24.0 + z * z / 720.0
+    elif z > 0.0:
+        r = math.sqrt(z)
+        s_ = math.sinh(r) / r
+        g_ = (math.cosh(r) - 1.0) / z
+    else:
+        r = math.sqrt(-z)
+        s_ = math.sin(r) / r
+        g_ = (1.0 - math.cos(r)) / (r * r)
+    return x_c + v_c * t * s_ + (k * x_c + c) * t * t * g_
+
+
 def time_to_reach(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> float:
     """Time [s] the PSTF with slope ``k`` takes from ``(x_c, v_c)`` to ``(x_n, v_n)`` (eqs. 11–12).
 
@@ -192,12 +209,11 @@ def k_for_duration(
 
     The time to reach grows strictly with ``k`` (a larger ``k`` lowers the kinetic energy at every
     interior point) from 0 as ``k → −∞`` to ``∞`` at ``k_max``, so the answer is unique; it is found
-    by Brent's method on ``(−4(π/duration)², k_high]`` (at ``−4(π/duration)²`` even a rest-to-rest
-    segment takes only ``duration/2``). Returns ``k_high`` when even that is faster than asked.
-    Both velocities must point along ``x_n − x_c`` (or be 0) and ``k_high`` must be below ``k_max``.
+    by the Illinois method (modified regula falsi) on ``(−4(π/duration)², k_high]`` (at
+    ``−4(π/duration)²`` even a rest-to-rest segment takes only ``duration/2``). Returns ``k_high``
+    when even that is faster than asked. Both velocities must point along ``x_n − x_c`` (or be
+    0) and ``k_high`` must be below ``k_max``.
     """
-    from scipy.optimize import brentq
-
     delta = x_n - x_c
     c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
     t0 = 2.0 * abs(delta) / (abs(v_c) + abs(v_n)) if v_c or v_n else math.inf
@@ -205,10 +221,33 @@ def k_for_duration(
     def excess_time(k: float) -> float:
         return _travel_time(delta, c0, v_c, v_n, k, t0) - duration
 
-    if time_to_reach(x_c, v_c, x_n, v_n, k_high) <= duration:
+    f_high = excess_time(k_high)
+    if f_high <= 0.0:
         return k_high
     k_low = min(-4.0 * (math.pi / duration) ** 2, k_high - 1.0)
-    while excess_time(k_low) >= 0.0:
+    f_low = excess_time(k_low)
+    while f_low >= 0.0:
         k_low *= 4.0
-    # rtol 1e-7 on k gives the duration to far better than a sample period.
-    return float(brentq(excess_time, k_low, k_high, xtol=1e-12, rtol=1e-7))
+        f_low = excess_time(k_low)
+    # Illinois (modified regula falsi) on the bracket: superlinear, never leaves the bracket.
+    # f_high may be +inf (k_high at the bound): bisect until it is finite.
+    side = 0
+    for _ in range(200):
+        if math.isinf(f_high):
+            k = 0.5 * (k_low + k_high)
+        else:
+            k = (k_low * f_high - k_high * f_low) / (f_high - f_low)
+        f = excess_time(k)
+        if abs(f) <= 1e-9 * duration or k_high - k_low <= 1e-12 * max(1.0, abs(k)):
+            return k
+        if f > 0.0:
+            k_high, f_high = k, f
+            if side == 1:
+                f_low *= 0.5
+            side = 1
+        else:
+            k_low, f_low = k, f
+            if side == -1 and not math.isinf(f_high):
+                f_high *= 0.5
+            side = -1
+    return k
