@@ -421,16 +421,18 @@ def bench_raw_mcap(n: int) -> dict[str, float]:
     (no bus), writing ``n`` small ArmState messages to a temporary file; msg/s."""
     from mcap.writer import Writer
 
+    from services.bus.messages import ArmState, Keys, encoding_for, schema_name_of
     from services.bus.recorder import McapSink
 
     msgs = [_state_bytes(i) for i in range(n)]
-    enc = "application/protobuf;psm.ArmState"
+    key = Keys().arm_state.key
+    enc = encoding_for(ArmState)
     with tempfile.TemporaryDirectory() as tmp:
         with open(Path(tmp) / "ref.mcap", "wb") as fh:
             w = Writer(fh)
             w.start()
-            sid = w.register_schema("psm.ArmState", "protobuf", b"")
-            ch = w.register_channel("psm/arm/state", "protobuf", sid)
+            sid = w.register_schema(schema_name_of(ArmState), "protobuf", b"")
+            ch = w.register_channel(key, "protobuf", sid)
             t0 = time.perf_counter()
             for i, m in enumerate(msgs):
                 w.add_message(ch, i, m, i)
@@ -439,7 +441,7 @@ def bench_raw_mcap(n: int) -> dict[str, float]:
         sink = McapSink(Path(tmp) / "sink.mcap")
         t0 = time.perf_counter()
         for i, m in enumerate(msgs):
-            sink.write("psm/arm/state", enc, m, i + 1)
+            sink.write(key, enc, m, i + 1)
         sink.close()
         own = n / (time.perf_counter() - t0)
     return {"reference_mcap_writer_msgs_per_s": ref, "recorder_sink_msgs_per_s": own}

@@ -99,7 +99,6 @@ class PSMController:
         self._vel_tol = float(velocity_tolerance)
         self._terminal_omega = terminal_omega
         self._goal = [0.0] * self._D
-        self.set_goal(goal)
         self._segment = [0] * self._D
         self._terminal = [False] * self._D
         self._k_cap = [math.inf] * self._D
@@ -107,6 +106,7 @@ class PSMController:
         self._t_e = [float(sum(c.durations)) for c in chains]
         self._modes = [MODE_SEGMENT] * self._D
         self._done = False
+        self.set_goal(goal)
 
     # ------------------------------------------------------------------ public state
     @property
@@ -148,10 +148,9 @@ class PSMController:
         if not np.all(np.isfinite(g)):
             raise ShapeError("goal must be finite")
         self._goal = [float(e) for e in g]
-        if hasattr(self, "_terminal"):
-            self._terminal = [False] * self._D
-            self._k_cap = [math.inf] * self._D
-            self._done = False
+        self._terminal = [False] * self._D
+        self._k_cap = [math.inf] * self._D
+        self._done = False
 
     def request_stop(self, dim: int, position: float) -> None:
         """Collision braking (eq. 15): dimension ``dim`` stops at ``position`` [unit] while the stop

@@ -88,10 +88,11 @@ def test_read_only_directory_fails_at_start(tmp_path: Path) -> None:
     ro.mkdir()
     ro.chmod(0o500)
     try:
-        if os.access(ro, os.W_OK):
-            pytest.skip("running as a user that ignores permissions")
+        # root ignores the mode bits: then use a directory nobody can create files in (procfs),
+        # so the test runs, and can fail, in CI as well.
+        target = ro if not os.access(ro, os.W_OK) else Path("/proc")
         with pytest.raises(RecorderError, match="cannot"):
-            McapSink(ro / "x.mcap")
+            McapSink(target / "x.mcap")
     finally:
         ro.chmod(0o700)
 

@@ -119,7 +119,6 @@ def test_push_against_the_motion_recovers(reach_demo, model: PhaseSpaceModel) ->
             v[0] = -0.6  # shoved backwards along x at 0.6 m/s
         return x, v
 
-    ctrl_modes = []
     r = model.rollout(dt=DT, disturbance=push)
     assert r.done
     np.testing.assert_allclose(r.x[-1], model.goal, atol=model.parameters.position_tolerance)
@@ -127,7 +126,6 @@ def test_push_against_the_motion_recovers(reach_demo, model: PhaseSpaceModel) ->
     i = round(0.7 / DT)
     assert r.a[i, 0] == pytest.approx(model.parameters.wrong_way_accel[0])
     assert np.max(np.abs(r.a)) <= max(3.0 * demo_accel_max(t, X), model.parameters.wrong_way_accel[0])
-    del ctrl_modes
 
 
 def test_wrong_way_mode_reported_by_the_controller(model: PhaseSpaceModel) -> None:
