@@ -108,6 +108,8 @@ class ArmSim:
         self.clamp = ClampReport()
         self.braking = True
         self._command: Command | None = None
+        #: Commands answering a tick below this are refused (set when the planner is lost).
+        self._min_command_tick = 0
         self._hold_rotation: np.ndarray | None = None
         self._ref_rotation: np.ndarray | None = None
         self._ref_quat: np.ndarray | None = None
@@ -168,7 +170,8 @@ class ArmSim:
 
         Rejected (and counted under ``rejected_<reason>``): malformed, non-finite, out of range,
         or answering a tick that has not happened yet. Ignored (counted ``stale``): a command
-        older than the one already held.
+        older than the one already held, or answering a state published before
+        :meth:`drop_command` (a lost planner's last commands still in flight).
         """
         self.counters["commands_received"] += 1
         try:
@@ -180,7 +183,9 @@ class ArmSim:
             self.counters["rejected"] += 1
             self.last_rejection = str(exc)
             return False
-        if self._command is not None and valid.tick < self._command.tick:
+        if valid.tick < self._min_command_tick or (
+            self._command is not None and valid.tick < self._command.tick
+        ):
             self.counters["stale"] += 1
             return False
         self._command = valid
@@ -191,8 +196,12 @@ class ArmSim:
 
     def drop_command(self) -> None:
         """Forget the held command: the arm brakes from the next step on (e.g. the planner's
-        liveliness token disappeared)."""
+        liveliness token disappeared). Commands answering the current or an earlier tick are
+        refused from now on, so a lost planner's commands that were still in flight (Zenoh
+        does not order them against the liveliness event) cannot restart the arm; a planner
+        that answers a state published after this call takes control again."""
         self._command = None
+        self._min_command_tick = self.tick + 1
 
     def reject(self, reason: str, message: str) -> None:
         """Count a command that could not even be decoded (reason e.g. ``malformed``)."""

@@ -191,6 +191,10 @@ def zenoh_config(cfg: ZenohConfig) -> Any:
     conf.insert_json5("timestamping/enabled", "true")
     if cfg.shared_memory:
         conf.insert_json5("transport/shared_memory/enabled", "true")
+    if cfg.low_latency:
+        # Zenoh refuses the low-latency transport together with QoS (it has one queue).
+        conf.insert_json5("transport/unicast/lowlatency", "true")
+        conf.insert_json5("transport/unicast/qos/enabled", "false")
     return conf
 
 

@@ -277,6 +277,28 @@ def test_future_and_stale_commands(robot: RobotModel) -> None:
     assert sim.counters["stale"] == 1
 
 
+def test_commands_in_flight_when_the_planner_is_lost_are_refused(robot: RobotModel) -> None:
+    sim = ArmSim(robot, ArmSimConfig(start_pose="home"))
+    a = np.array([0.0, 1.0, 0.0])
+    for _ in range(50):
+        assert sim.submit(Command(sim.tick, CommandMode.CARTESIAN, a))
+        sim.step()
+    lost_at = sim.tick
+    sim.drop_command()  # the planner's liveliness token is gone
+    # Its last commands arrive afterwards: answering states up to the current tick, refused.
+    assert not sim.submit(Command(lost_at, CommandMode.CARTESIAN, a))
+    assert not sim.submit(Command(lost_at - 1, CommandMode.CARTESIAN, a))
+    assert sim.counters["stale"] == 2
+    s = sim.step()
+    assert s.braking
+    for _ in range(200):
+        s = sim.step()
+    assert not np.any(s.dq)
+    # A (restarted) planner answering a state published after the loss takes control again.
+    assert sim.submit(Command(sim.tick, CommandMode.CARTESIAN, a))
+    assert not sim.step().braking
+
+
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     seed=st.integers(0, 2**31 - 1),

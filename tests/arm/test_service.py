@@ -257,7 +257,7 @@ def test_lost_planner_liveliness_brakes_before_the_watchdog(bus: Bus) -> None:
         "--clock",
         "realtime",
         "--set",
-        "arm.watchdog_timeout_s=8",
+        "arm.watchdog_timeout_s=10",
         "--set",
         "arm.watch_services=probe",
     )
@@ -271,9 +271,10 @@ def test_lost_planner_liveliness_brakes_before_the_watchdog(bus: Bus) -> None:
     assert arm.poll() is None, bus.stderr(arm)
     assert stop(probe) == 0  # graceful: its liveliness token goes away
     t_stop = time.monotonic()
-    # With an 8 s watchdog only the liveliness loss can stop the arm this quickly.
-    wait_until(lambda: states[-1].braking and not any(states[-1].dq), 4.0, "the arm at rest")
-    assert time.monotonic() - t_stop < 4.0
+    # With a 10 s watchdog (the maximum) only the liveliness loss can stop the arm this quickly
+    # (the margin is for a loaded machine; unloaded it takes well under a second).
+    wait_until(lambda: states[-1].braking and not any(states[-1].dq), 6.0, "the arm at rest")
+    assert time.monotonic() - t_stop < 6.0
     _check_limits(_states(states))
     sub.undeclare()
     assert stop(arm) == 0, bus.stderr(arm)

@@ -57,10 +57,11 @@ def test_file_env_cli_precedence(tmp_path: Path) -> None:
     parser = argparse.ArgumentParser()
     add_config_arguments(parser)
     args = parser.parse_args(["--config", str(f), "--prefix", "clicell", "--multicast",
-                              "--set", "arm.dt_s=0.008", "--mode", "peer"])
+                              "--set", "arm.dt_s=0.008", "--mode", "peer", "--low-latency"])
     cfg = config_from_args(ArmConfig, args, env=env)
-    assert (cfg.prefix, cfg.zenoh.multicast, cfg.arm.dt_s, cfg.zenoh.mode) == (
-        "clicell", True, 0.008, "peer")
+    assert (cfg.prefix, cfg.zenoh.multicast, cfg.arm.dt_s, cfg.zenoh.mode, cfg.zenoh.low_latency) == (
+        "clicell", True, 0.008, "peer", True)
+    assert config_from_args(ArmConfig, parser.parse_args([]), env={}).zenoh.low_latency is False
 
 
 def test_env_var_names() -> None:

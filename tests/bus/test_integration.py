@@ -334,3 +334,42 @@ def test_every_delivery_gets_all_messages_in_order(router, delivery) -> None:  #
     finally:
         b.close()
         a.close()
+
+
+def test_low_latency_transport_peers_exchange_every_message_in_order() -> None:
+    """``zenoh.low_latency`` on both ends (as for the arm<->planner loop): the config reaches
+    Zenoh (QoS off, which Zenoh requires) and a peer-to-peer link delivers everything in order."""
+    from services.bus.config import ServiceConfig, load_config
+    from services.bus.runtime import zenoh_config
+
+    from .helpers import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    base = {"zenoh.multicast": False, "zenoh.gossip": False, "zenoh.low_latency": True,
+            "status_period_s": 0.2}
+    cfg_a = load_config(ServiceConfig, env={}, overrides={**base, "zenoh.listen": [endpoint]})
+    cfg_b = load_config(ServiceConfig, env={}, overrides={**base, "zenoh.connect": [endpoint]})
+    conf = zenoh_config(cfg_a.zenoh)
+    assert json.loads(conf.get_json("transport/unicast/lowlatency")) is True
+    assert json.loads(conf.get_json("transport/unicast/qos/enabled")) is False
+    k = Keys()
+    a = Service("sub", cfg_a).start()
+    b = Service("pub", cfg_b).start()
+    try:
+        got: list[int] = []
+        a.subscribe(k.arm_state, lambda m, _key: got.append(m.tick), delivery="inline")
+        pub = b.publisher(k.arm_state)
+
+        def route_ready() -> bool:
+            pub.put(ArmState(stamp_ns=1, tick=1_000_000))
+            return 1_000_000 in got
+        assert wait_for(route_ready, 10, period_s=0.05)
+        time.sleep(0.2)
+        got.clear()
+        for i in range(500):
+            pub.put(ArmState(stamp_ns=i + 1, tick=i))
+        assert wait_for(lambda: len(got) == 500, 10), len(got)
+        assert got == list(range(500))
+    finally:
+        b.close()
+        a.close()
