@@ -309,28 +309,33 @@ def test_replay_as_fast_as_possible_keeps_recorded_order(procs, router) -> None:
         (k, e, p) for k, e, p, _ in fixture]
 
 
+def _check_in_order_delivery(a: Service, b: Service, delivery: str, n: int = 500) -> None:
+    """``b`` publishes ``n`` ArmStates; ``a``'s subscription (``delivery``) gets all, in order."""
+    k = Keys()
+    got: list[int] = []
+    a.subscribe(k.arm_state, lambda m, _key: got.append(m.tick), delivery=delivery)
+    pub = b.publisher(k.arm_state)
+
+    def route_ready() -> bool:  # matching status alone can be true before the route is
+        pub.put(ArmState(stamp_ns=1, tick=1_000_000))
+        return 1_000_000 in got
+    assert wait_for(route_ready, 10, period_s=0.05)
+    time.sleep(0.2)
+    got.clear()
+    for i in range(n):
+        pub.put(ArmState(stamp_ns=i + 1, tick=i))
+    assert wait_for(lambda: len(got) == n, 10), len(got)
+    assert got == list(range(n))
+
+
 @pytest.mark.parametrize("delivery", ["queue", "channel", "inline"])
 def test_every_delivery_gets_all_messages_in_order(router, delivery) -> None:  # type: ignore[no-untyped-def]
-    k = Keys()
     a = Service("sub", client_config(router)).start()
     b = Service("pub", client_config(router)).start()
     try:
-        got: list[int] = []
-        a.subscribe(k.arm_state, lambda m, _key: got.append(m.tick), delivery=delivery)
-        pub = b.publisher(k.arm_state)
-
-        def route_ready() -> bool:  # matching status alone can be true before the route is
-            pub.put(ArmState(stamp_ns=1, tick=1_000_000))
-            return 1_000_000 in got
-        assert wait_for(route_ready, 10, period_s=0.05)
-        time.sleep(0.2)
-        got.clear()
-        for i in range(500):
-            pub.put(ArmState(stamp_ns=i + 1, tick=i))
-        assert wait_for(lambda: len(got) == 500, 10), len(got)
-        assert got == list(range(500))
+        _check_in_order_delivery(a, b, delivery)
         with pytest.raises(ValueError, match="delivery must be"):
-            a.subscribe(k.arm_state, lambda m, _key: None, delivery="bogus")
+            a.subscribe(Keys().arm_state, lambda m, _key: None, delivery="bogus")
     finally:
         b.close()
         a.close()
@@ -352,24 +357,10 @@ def test_low_latency_transport_peers_exchange_every_message_in_order() -> None:
     conf = zenoh_config(cfg_a.zenoh)
     assert json.loads(conf.get_json("transport/unicast/lowlatency")) is True
     assert json.loads(conf.get_json("transport/unicast/qos/enabled")) is False
-    k = Keys()
     a = Service("sub", cfg_a).start()
     b = Service("pub", cfg_b).start()
     try:
-        got: list[int] = []
-        a.subscribe(k.arm_state, lambda m, _key: got.append(m.tick), delivery="inline")
-        pub = b.publisher(k.arm_state)
-
-        def route_ready() -> bool:
-            pub.put(ArmState(stamp_ns=1, tick=1_000_000))
-            return 1_000_000 in got
-        assert wait_for(route_ready, 10, period_s=0.05)
-        time.sleep(0.2)
-        got.clear()
-        for i in range(500):
-            pub.put(ArmState(stamp_ns=i + 1, tick=i))
-        assert wait_for(lambda: len(got) == 500, 10), len(got)
-        assert got == list(range(500))
+        _check_in_order_delivery(a, b, "inline")
     finally:
         b.close()
         a.close()
