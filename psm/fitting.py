@@ -13,7 +13,12 @@ Pipeline for each dimension of a demonstration ``t (T,) [s]``, ``X (T, D)``:
    and ``k`` by closed-form least squares, clamped below the stability bound (:mod:`psm.pstf`).
 
 Least squares over any sample range is O(1) from prefix sums (:class:`_PrefixSums`), which makes
-``"auto"`` a handful of vectorised passes instead of a search over all partitions.
+``"auto"`` a handful of vectorised passes instead of a search over all partitions. All dimensions
+are learned together (:func:`fit_dimensions`): the greedy splitting of each dimension is replayed
+level by level of its splitting tree (:class:`_Greedy`), so that each round is one vectorised split
+search and one vectorised deviation check for every dimension and segment concerned. At the sizes
+involved (a few hundred numbers) numpy's per-call cost dominates, so the batches are built to make
+as few numpy calls as possible; the result is the same as splitting each dimension on its own.
 """
 
 from __future__ import annotations
@@ -24,12 +29,19 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.fft as sp_fft
 from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import gaussian_filter1d
-from scipy.signal import fftconvolve
 
 from psm.errors import DemonstrationError, ParameterError
-from psm.pstf import K_MAX_FRACTION, coefficient_c, k_for_duration, k_limit, position, time_to_reach
+from psm.pstf import (
+    K_MAX_FRACTION,
+    coefficient_c,
+    k_for_duration,
+    k_limit,
+    positions_from_acceleration,
+    time_to_reach,
+)
 
 #: Fewest samples a demonstration may have.
 MIN_SAMPLES = 8
@@ -140,15 +152,26 @@ def smooth(t: NDArray, X: NDArray, sigma: float) -> SmoothedDemo:
 def _gaussian_smooth(X: NDArray, sigma_samples: float) -> NDArray:
     """Gaussian smoothing of ``X (T, D)`` along time with ``sigma_samples``; the kernel is truncated
     at 4 sigma. Long kernels are applied by FFT (O(T log T)), short ones directly; the edges are the
-    caller's (the samples beyond the ends are taken as equal to the end samples)."""
+    caller's (the samples beyond the ends are taken as equal to the end samples).
+
+    The FFT path is ``scipy.signal.fftconvolve(..., mode="valid")`` written out (same transforms,
+    same result) on a ``(D, T)`` copy, which halves its cost at a few thousand samples."""
     radius = int(4.0 * sigma_samples + 0.5)
     if radius < 16 or X.shape[0] < 4 * radius:
         return gaussian_filter1d(X, sigma_samples, axis=0, mode="nearest")
     u = np.arange(-radius, radius + 1, dtype=float)
     kernel = np.exp(-0.5 * (u / sigma_samples) ** 2)
     kernel /= kernel.sum()
-    padded = np.concatenate([np.repeat(X[:1], radius, axis=0), X, np.repeat(X[-1:], radius, axis=0)])
-    return fftconvolve(padded, kernel[:, None], mode="valid", axes=0)
+    T, D = X.shape
+    padded = np.empty((D, T + 2 * radius))  # the end samples repeated ``radius`` times
+    padded[:, :radius] = X[:1].T
+    padded[:, radius : radius + T] = X.T
+    padded[:, radius + T :] = X[-1:].T
+    n_full = padded.shape[1] + kernel.size - 1
+    n_fft = sp_fft.next_fast_len(n_full, True)
+    spectrum = sp_fft.rfft(padded, n_fft, axis=1) * sp_fft.rfft(kernel, n_fft)
+    full = sp_fft.irfft(spectrum, n_fft, axis=1)
+    return full[:, kernel.size - 1 : padded.shape[1]].T
 
 
 def turning_points(x: NDArray, tolerance: float) -> list[int]:
@@ -194,92 +217,124 @@ def turning_points(x: NDArray, tolerance: float) -> list[int]:
 
 
 class _PrefixSums:
-    """Prefix sums of one dimension's samples, for O(1) least squares over any index range."""
+    """Prefix sums of the samples of ``D`` dimensions, for O(1) least squares over any index range.
+
+    ``rows (5, D·(T+1))``: column ``d·(T+1) + i`` holds the sums over samples ``0..i−1`` of
+    dimension ``d`` of ``x, x², a, a², x·a`` (``x (T, D)`` [unit], ``a (T, D)`` [unit/s²]), so the
+    sums over samples ``i..j`` are ``rows[:, b + j + 1] − rows[:, b + i]`` with ``b = d·(T+1)``
+    (:attr:`stride`).
+    """
 
     def __init__(self, x: NDArray, a: NDArray) -> None:
-        zero = np.zeros(1)
-        self.sx = np.concatenate([zero, np.cumsum(x)])
-        self.sxx = np.concatenate([zero, np.cumsum(x * x)])
-        self.sa = np.concatenate([zero, np.cumsum(a)])
-        self.saa = np.concatenate([zero, np.cumsum(a * a)])
-        self.sxa = np.concatenate([zero, np.cumsum(x * a)])
+        T, D = x.shape
+        self.stride = T + 1
+        self.rows = np.empty((5, D * (T + 1)))
+        self.rows[:, :: T + 1] = 0.0  # the sum over no sample, before each dimension
+        for d in range(D):
+            x_d, a_d = x[:, d], a[:, d]
+            first = d * (T + 1) + 1
+            for row, term in zip(self.rows, (x_d, x_d * x_d, a_d, a_d * a_d, x_d * a_d), strict=True):
+                np.cumsum(term, out=row[first : first + T])
 
-    def slope(self, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float) -> float:
-        """Unclamped least-squares ``k`` [1/s²] over samples ``i..j`` with the given end states."""
-        return self.line(i, j, x_c, v_c, x_n, v_n, math.inf)[0]
+    def slope(self, d: int, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float) -> float:
+        """Unclamped least-squares ``k`` [1/s²] over samples ``i..j`` of dimension ``d`` with the
+        given end states."""
+        return self.line(d, i, j, x_c, v_c, x_n, v_n, math.inf)[0]
 
     def line(
-        self, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float, k_cap: float
+        self, d: int, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float, k_cap: float
     ) -> tuple[float, float]:
-        """Scalar :meth:`fit` of one range: ``(k, sse)`` with ``k`` clamped to ``k_cap``."""
+        """Scalar :meth:`fit` of one range of dimension ``d``: ``(k, sse)`` with ``k`` clamped to
+        ``k_cap`` [1/s²]; ``(−inf, inf)`` when the range has no slope (``Δ = 0`` or no spread)."""
         n = j - i + 1
         delta = x_n - x_c
         if delta == 0.0:
             return -math.inf, math.inf
         c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
         m = 0.5 * (x_c + x_n)
-        sx = float(self.sx[j + 1] - self.sx[i])
-        sa = float(self.sa[j + 1] - self.sa[i])
-        num = float(self.sxa[j + 1] - self.sxa[i]) - m * sa - c0 * sx + n * c0 * m
-        den = float(self.sxx[j + 1] - self.sxx[i]) - 2.0 * m * sx + n * m * m
+        base = d * self.stride
+        sx, sxx, sa, saa, sxa = (self.rows[:, base + j + 1] - self.rows[:, base + i]).tolist()
+        num = sxa - m * sa - c0 * sx + n * c0 * m
+        den = sxx - 2.0 * m * sx + n * m * m
         if den <= 0.0:
             return -math.inf, math.inf
         k = min(num / den, k_cap)
-        sse = float(self.saa[j + 1] - self.saa[i]) - 2.0 * c0 * sa + n * c0 * c0 - 2.0 * k * num + k * k * den
+        sse = saa - 2.0 * c0 * sa + n * c0 * c0 - 2.0 * k * num + k * k * den
         return k, max(sse, 0.0)
 
     def fit(
-        self,
-        i: NDArray,
-        j: NDArray,
-        x: NDArray,
-        v: NDArray,
-        kappa: NDArray,
-        k_rest: NDArray,
+        self, i: NDArray, j: NDArray, steps: NDArray, start: NDArray, end: NDArray, kappa: NDArray
     ) -> tuple[NDArray, NDArray]:
-        """Least-squares ``k`` and residual sum of squares of ``a ≈ c₀ + k (x − m)`` over samples
-        ``i..j`` (inclusive, arrays of equal shape), with ``c₀, m`` from the end samples and ``k``
-        clamped to ``ρ k_max − kappa``. ``k_rest`` replaces ``k`` where the ends are both at rest and
-        the clamp leaves no valid slope. Returns ``(k, sse)`` [1/s², unit²/s⁴]."""
-        n = (j - i + 1).astype(float)
-        sx = self.sx[j + 1] - self.sx[i]
-        sxx = self.sxx[j + 1] - self.sxx[i]
-        sa = self.sa[j + 1] - self.sa[i]
-        saa = self.saa[j + 1] - self.saa[i]
-        sxa = self.sxa[j + 1] - self.sxa[i]
-        x_c, x_n, v_c, v_n = x[i], x[j], v[i], v[j]
+        """Least-squares ``k`` and residual sum of squares of ``a ≈ c₀ + k (x − m)`` over ranges of
+        samples, with ``c₀, m`` from the end states and ``k`` clamped to ``ρ k_max − kappa``.
+
+        ``i, j (n,)``: the columns of :attr:`rows` before the first and at the last sample of each
+        range (``d·(T+1) + first`` and ``d·(T+1) + last + 1``); ``steps (n,)`` = last − first;
+        ``start, end (3, n)``: ``x`` [unit], ``v²`` [unit²/s²], ``|v|`` [unit/s] at the first and
+        last sample; ``kappa (n,)`` [1/s²] the stability margin of a range that moves (a range
+        with ``Δ = 0`` gets 0, and ``−kappa`` replaces a ``k`` left non-finite by the clamp).
+        Returns ``(k, sse)`` ``(n,)`` [1/s², unit²/s⁴]. Numpy's per-call cost dominates at the
+        sizes of a split search, so the arithmetic is written with as few calls as possible (the
+        same operations, in the same order, as :meth:`line`)."""
+        sx, sxx, sa, saa, sxa = self.rows.take(j, axis=1) - self.rows.take(i, axis=1)
+        x_c, vv_c, speed_c = start
+        x_n, vv_n, speed_n = end
+        n = steps + 1.0
         delta = x_n - x_c
-        safe = np.where(delta == 0.0, 1.0, delta)
-        c0 = (v_n * v_n - v_c * v_c) / (2.0 * safe)
+        moving = delta != 0.0
+        kappa = kappa * moving
+        safe = delta + ~moving  # Δ, or 1 where Δ = 0
+        c0 = (vv_n - vv_c) / (2.0 * safe)
         m = 0.5 * (x_c + x_n)
-        num = sxa - m * sa - c0 * sx + n * c0 * m
+        n_c0 = n * c0
+        num = sxa - m * sa - c0 * sx + n_c0 * m
         den = sxx - 2.0 * m * sx + n * m * m
         k_ls = num / np.where(den > 0.0, den, 1.0)
-        k_cap = K_MAX_FRACTION * ((np.abs(v_c) + np.abs(v_n)) / safe) ** 2 - kappa
+        k_cap = K_MAX_FRACTION * ((speed_c + speed_n) / safe) ** 2 - kappa
         k = np.minimum(k_ls, k_cap)
-        k = np.where(np.isfinite(k), k, k_rest)
-        sse = saa - 2.0 * c0 * sa + n * c0 * c0 - 2.0 * k * num + k * k * den
-        return k, np.maximum(sse, 0.0)
+        k = np.where(np.isfinite(k), k, -kappa)
+        sse = saa - 2.0 * c0 * sa + n_c0 * c0 - 2.0 * k * num + k * k * den
+        return k, np.maximum(sse, 0.0, out=sse)
 
 
-def _segment_kappa(delta: NDArray, duration: NDArray, min_speed_ratio: float) -> NDArray:
-    """Stability margin ``(2μ/T)²`` [1/s²] of segments lasting ``duration`` [s] in the demo."""
-    return (2.0 * min_speed_ratio / np.maximum(duration, 1e-12)) ** 2 * (delta != 0.0)
+class _Samples:
+    """The smoothed samples of all ``D`` dimensions, laid out for vectorised work across them.
 
-
-class _Segmenter:
-    """Fits one segment of one dimension between two sample indices (inclusive).
-
-    ``x (T,)`` smoothed positions, ``v_knot (T,)`` velocities to use when a sample is a via-point
-    (zero at reversals and at the end), ``sums`` prefix sums of ``x`` and the acceleration.
+    ``t (T,)`` [s], ``dt`` [s]; ``x (D·T,)`` positions [unit] and ``v_knot (D·T,)`` via-point
+    velocities [unit/s] of dimension ``d`` at ``[d·T, (d+1)·T)``; ``sums`` their prefix sums.
+    For the split search (while ``v_knot`` does not change): ``states (3, D·T)`` the rows ``x``,
+    ``v_knot²``, ``|v_knot|``, and ``kappa_of_steps (T,)`` [1/s²] the stability margin
+    ``(2μ/T_seg)²`` of a segment ``n`` samples long (:func:`psm.pstf.k_limit`).
     """
 
     def __init__(
-        self, t: NDArray, x: NDArray, v_knot: NDArray, dt: float, sums: _PrefixSums,
-        min_speed_ratio: float, k_fit: str,
+        self, t: NDArray, x: NDArray, v_knot: NDArray, a: NDArray, dt: float, min_speed_ratio: float
     ) -> None:
-        self.t, self.x, self.v_knot, self.dt = t, x, v_knot, dt
-        self.sums, self.min_speed_ratio, self.k_fit = sums, min_speed_ratio, k_fit
+        self.t, self.dt, self.T = t, dt, t.shape[0]
+        self.states = np.empty((3, x.size))
+        self.x = self.states[0]
+        self.x[:] = x.T.reshape(-1)
+        self.v_knot = np.ascontiguousarray(v_knot.T).reshape(-1)
+        np.multiply(self.v_knot, self.v_knot, out=self.states[1])
+        np.abs(self.v_knot, out=self.states[2])
+        self.kappa_of_steps = (2.0 * min_speed_ratio / np.maximum(np.arange(self.T) * dt, 1e-12)) ** 2
+        self.sums = _PrefixSums(x, a)
+
+
+class _Segmenter:
+    """Fits one segment of one dimension ``d`` between two sample indices (inclusive).
+
+    ``x (T,)`` smoothed positions, ``v_knot (T,)`` velocities to use when a sample is a via-point
+    (zero at reversals and at the end): views of the shared :class:`_Samples`.
+    """
+
+    def __init__(self, samples: _Samples, d: int, min_speed_ratio: float, k_fit: str) -> None:
+        T = samples.T
+        self.samples, self.d, self.offset = samples, d, d * T
+        self.t, self.dt, self.sums = samples.t, samples.dt, samples.sums
+        self.x = samples.x[d * T : (d + 1) * T]
+        self.v_knot = samples.v_knot[d * T : (d + 1) * T]
+        self.min_speed_ratio, self.k_fit = min_speed_ratio, k_fit
         self._slopes: dict[tuple[int, int, float, float], float] = {}
 
     def boundary(self, lo: int, hi: int) -> tuple[float, float, float, float]:
@@ -308,95 +363,206 @@ class _Segmenter:
         k_cap = k_limit(v_c, v_n, x_n - x_c, kap)
         if self.k_fit == "duration":
             return k_for_duration(x_c, v_c, x_n, v_n, (hi - lo) * self.dt, k_cap)
-        return min(self.sums.slope(lo, hi, x_c, v_c, x_n, v_n), k_cap)
+        return min(self.sums.slope(self.d, lo, hi, x_c, v_c, x_n, v_n), k_cap)
 
-    def deviation(self, lo: int, hi: int) -> float:
-        """Largest |PSTF − demonstration| [unit] over the segment's samples, the PSTF started at the
-        segment's first via-point at its time (timing drift inside the segment counts)."""
+    def within_budget(self, lo: int, hi: int, tolerance: float) -> bool:
+        """The cheap O(1) acceptance test: an RMS acceleration residual ``e`` of the best line over
+        a segment of duration ``T`` bends the path by about ``e T²/8``, so ``2 e T²/8 ≤ tolerance``
+        [unit] (a factor 2 of safety) accepts it without computing the PSTF. Noise inflates ``e``,
+        so the shortcut never accepts a noisy segment the exact test would reject."""
         x_c, v_c, x_n, v_n = self.boundary(lo, hi)
-        k = self.slope(lo, hi)
+        k_cap = k_limit(v_c, v_n, x_n - x_c, self.kappa(lo, hi))
+        _, sse = self.sums.line(self.d, lo, hi, x_c, v_c, x_n, v_n, k_cap)
+        duration = (hi - lo) * self.dt
+        return 2.0 * math.sqrt(sse / (hi - lo + 1)) * duration * duration / 8.0 <= tolerance
+
+    def split_candidates(self, lo: int, hi: int, min_samples: int, min_delta: float) -> NDArray:
+        """Sample indices where ``lo..hi`` may be cut: each half has at least ``min_samples``
+        samples and moves at least ``min_delta`` [unit]; at most ~128, evenly spaced. ``(n,)``."""
+        first, last = lo + min_samples, hi - min_samples
+        if last < first:
+            return np.empty(0, dtype=np.intp)
+        x_in = self.x[first : last + 1]
+        ok = (np.abs(x_in - self.x[lo]) >= min_delta) & (np.abs(self.x[hi] - x_in) >= min_delta)
+        cand = np.flatnonzero(ok) + first
+        if cand.size > 128:  # at most ~128 evenly spaced candidates
+            cand = cand[:: math.ceil(cand.size / 128)]
+        return cand
+
+
+def _deviations(segments: Sequence[tuple[_Segmenter, int, int]]) -> list[float]:
+    """Largest |PSTF − demonstration| [unit] over each segment's samples, the PSTF started at the
+    segment's first via-point at its time (timing drift inside the segment counts).
+
+    ``segments``: ``(segmenter, lo, hi)`` of any dimensions of one :class:`_Samples`. The ``k``,
+    ``c`` and arrival time of each segment are scalar; the PSTF at its samples (at most ~32 evenly
+    spaced ones, the deviation being smooth at the sample scale) is one vectorised evaluation of
+    :func:`psm.pstf.positions_from_acceleration` over all segments at once.
+    """
+    if not segments:
+        return []
+    samples = segments[0][0].samples
+    index = []  # per segment: first sample, step, position in the batch, offset in samples.x
+    params = []  # per segment: x_c, v_c, k, a_c, t_lo, t_end, x_n
+    counts = []
+    total = 0
+    for seg, lo, hi in segments:
+        x_c, v_c, x_n, v_n = seg.boundary(lo, hi)
+        k = seg.slope(lo, hi)
         c = coefficient_c(x_c, v_c, x_n, v_n, k)
         t_end = time_to_reach(x_c, v_c, x_n, v_n, k)
-        # At most ~32 evenly spaced samples (the deviation is smooth at the sample scale), on
-        # Python floats: this runs a dozen times per dimension and numpy's per-call cost dominates.
-        t0 = float(self.t[lo])
-        worst = 0.0
-        for i in range(lo, hi + 1, max(1, (hi - lo) // 32)):
-            elapsed = float(self.t[i]) - t0
-            # Past its arrival the PSTF would continue; the chain moves on to the next segment.
-            x_model = position(elapsed, x_c, v_c, k, c) if elapsed <= t_end else x_n
-            worst = max(worst, abs(x_model - float(self.x[i])))
-        return worst
-
-    def error(self, lo: int, hi: int, tolerance: float) -> float:
-        """The segment's :meth:`deviation`, skipped (0) when a cheap O(1) estimate already shows it
-        within ``tolerance``: an RMS acceleration residual ``e`` of the best line over a segment of
-        duration ``T`` bends the path by about ``e T²/8``, so ``2 e T²/8 ≤ tolerance`` (a factor 2
-        of safety) accepts it without computing the PSTF. Noise inflates ``e``, so the shortcut
-        never accepts a noisy segment the exact test would reject."""
-        x_c, v_c, x_n, v_n = self.boundary(lo, hi)
-        _, sse = self.sums.line(lo, hi, x_c, v_c, x_n, v_n, k_limit(v_c, v_n, x_n - x_c, self.kappa(lo, hi)))
-        duration = (hi - lo) * self.dt
-        if 2.0 * math.sqrt(sse / (hi - lo + 1)) * duration * duration / 8.0 <= tolerance:
-            return 0.0
-        return self.deviation(lo, hi)
-
-    def split_sse(self, lo: int, hi: int, cand: NDArray) -> NDArray:
-        """Residual sums of squares of the acceleration line fits of ``lo..c`` plus ``c..hi`` for every
-        candidate cut ``c`` in ``cand`` (one vectorised evaluation)."""
-        n_c = cand.size
-        starts = np.concatenate([np.full(n_c, lo), cand])
-        ends = np.concatenate([cand, np.full(n_c, hi)])
-        kap = _segment_kappa(self.x[ends] - self.x[starts], (ends - starts) * self.dt, self.min_speed_ratio)
-        _, sse = self.sums.fit(starts, ends, self.x, self.v_knot, kap, -kap)
-        return sse[:n_c] + sse[n_c:]
+        step = max(1, (hi - lo) // 32)
+        count = (hi - lo) // step + 1
+        index.append((lo, step, total, seg.offset))
+        params.append((x_c, v_c, k, k * x_c + c, float(samples.t[lo]), t_end, x_n))
+        counts.append(count)
+        total += count
+    lo_s, step_s, start_s, offset_s = np.repeat(np.array(index), counts, axis=0).T
+    x_c, v_c, k, a_c, t_lo, t_end, x_n = np.repeat(np.array(params), counts, axis=0).T
+    i = lo_s + step_s * (np.arange(total) - start_s)  # the samples evaluated, (total,)
+    elapsed = samples.t.take(i) - t_lo
+    # Past its arrival the PSTF would continue; the chain moves on to the next segment.
+    x_model = np.where(elapsed <= t_end, positions_from_acceleration(elapsed, x_c, v_c, k, a_c), x_n)
+    error = np.abs(x_model - samples.x.take(i + offset_s))
+    # fmax skips NaN samples (a degenerate least-squares k) as max(worst, nan) does; all NaN -> 0.
+    worst = np.fmax.reduceat(error, [row[2] for row in index]).tolist()
+    return [w if w == w else 0.0 for w in worst]
 
 
-def auto_cuts(
-    cuts: list[int],
-    segmenter: _Segmenter,
+def _errors(segments: Sequence[tuple[_Segmenter, int, int]], tolerance: float) -> list[float]:
+    """Each segment's :func:`_deviations` [unit], skipped (0) when
+    :meth:`_Segmenter.within_budget` already accepts it; the deviations needed are one batch."""
+    out = [0.0] * len(segments)
+    todo = [s for s, (seg, lo, hi) in enumerate(segments) if not seg.within_budget(lo, hi, tolerance)]
+    for s, dev in zip(todo, _deviations([segments[s] for s in todo]), strict=True):
+        out[s] = dev
+    return out
+
+
+def _split_points(splits: Sequence[tuple[_Segmenter, int, int, NDArray]]) -> list[int]:
+    """For each ``(segmenter, lo, hi, cand)``, the candidate cut ``c`` in ``cand (n,)`` that
+    minimises the residual sums of squares of the acceleration line fits of ``lo..c`` plus
+    ``c..hi`` (the first one on ties). All candidates of all segments are one vectorised fit."""
+    samples = splits[0][0].samples
+    stride = samples.sums.stride
+    sizes = [cand.size for *_, cand in splits]
+    # Per candidate: the segment's ends and the offsets of its dimension in samples.x / sums.rows.
+    lo, hi, offset, base = np.repeat(
+        np.array([(lo, hi, seg.offset, seg.d * stride) for seg, lo, hi, _ in splits]).T, sizes, axis=1
+    )
+    cand = np.concatenate([cand for *_, cand in splits])
+    first = np.concatenate([lo, cand])  # the two halves lo..c and c..hi of every candidate c
+    last = np.concatenate([cand, hi])
+    offset = np.concatenate([offset, offset])
+    base = np.concatenate([base, base])
+    steps = last - first
+    _, sse = samples.sums.fit(
+        first + base,
+        last + base + 1,
+        steps,
+        samples.states.take(first + offset, axis=1),
+        samples.states.take(last + offset, axis=1),
+        samples.kappa_of_steps.take(steps),
+    )
+    n_c = cand.size
+    total = sse[:n_c] + sse[n_c:]
+    out = []
+    start = 0
+    for size in sizes:
+        out.append(int(cand[start + int(total[start : start + size].argmin())]))
+        start += size
+    return out
+
+
+class _Greedy:
+    """The greedy top-down splitting of one dimension, replayed on a tree of known splits.
+
+    Whether and where a segment ``(lo, hi)`` is split depends on that segment alone, so the splits
+    can be computed ahead of the greedy order (:attr:`split`, :attr:`node_error`) and the greedy
+    choice (the worst segment first, the earliest on ties) replayed on them: :meth:`advance`.
+    """
+
+    def __init__(self, cuts: list[int], tolerance: float, max_segments: int) -> None:
+        self.cuts, self.tolerance, self.max_segments = cuts, tolerance, max_segments
+        self.error: dict[int, float] = {}  # by the first sample of each current segment
+        self.blocked: set[int] = set()
+        #: Split sample of every segment examined, ``None`` when it cannot be split.
+        self.split: dict[tuple[int, int], int | None] = {}
+        self.node_error: dict[tuple[int, int], float] = {}
+
+    def advance(self) -> list[tuple[int, int]]:
+        """Split greedily as far as the known splits allow. Returns ``[]`` when done, otherwise the
+        segments to examine next: the one the greedy order needs now, then the others it may split
+        later (the worst first, at most as many as splits remain)."""
+        cuts, error = self.cuts, self.error
+        while len(cuts) - 1 < self.max_segments:
+            worst, worst_err = -1, self.tolerance
+            for idx, lo in enumerate(cuts[:-1]):
+                if lo not in self.blocked and error[lo] > worst_err:
+                    worst, worst_err = idx, error[lo]
+            if worst < 0:
+                return []
+            lo, hi = cuts[worst], cuts[worst + 1]
+            if (lo, hi) not in self.split:
+                open_ = [
+                    (-error[a], a, b)
+                    for a, b in itertools.pairwise(cuts)
+                    if a not in self.blocked and error[a] > self.tolerance and (a, b) not in self.split
+                ]
+                open_.sort()
+                return [(a, b) for _, a, b in open_[: self.max_segments - (len(cuts) - 1)]]
+            s = self.split[(lo, hi)]
+            if s is None:
+                self.blocked.add(lo)
+                continue
+            cuts.insert(worst + 1, s)
+            error[lo] = self.node_error[(lo, s)]
+            error[s] = self.node_error[(s, hi)]
+        return []
+
+
+def _auto_cuts(
+    cuts: Sequence[list[int]],
+    segmenters: Sequence[_Segmenter],
     tolerance: float,
     min_samples: int,
     min_delta: float,
     max_segments: int,
-) -> list[int]:
-    """Refine ``cuts`` (sorted sample indices including both ends) by top-down splitting.
+) -> list[list[int]]:
+    """:func:`auto_cuts` of several dimensions (``cuts[g]`` of ``segmenters[g]``) at once.
 
-    ``tolerance`` [unit] is a position budget: a segment is split while its PSTF, started at the
-    segment's first via-point, deviates from the (smoothed) demonstration by more than that at any
-    sample (:meth:`_Segmenter.deviation`). Judging positions, not accelerations, makes the criterion
-    blind to zero-mean acceleration noise, which bends no path. The worst segment is split at the
-    sample that minimises the two halves' residual in the position–acceleration plane (O(1) per
-    candidate from prefix sums), each half having at least ``min_samples`` samples and moving at
-    least ``min_delta`` [unit], until every segment is within budget or ``max_segments`` exist.
-    Velocity sign changes never fall inside a segment: the reversals are cuts already.
+    The cuts are those of :func:`auto_cuts` per dimension, in its greedy order (:class:`_Greedy`),
+    but the numerical work is done level by level of the splitting tree: each round splits every
+    segment the greedy order needs or may need next, in all dimensions, as one vectorised split
+    search and one vectorised deviation check of all new halves. Splits computed ahead are wasted
+    only when ``max_segments`` stops the greedy order first.
     """
-    x = segmenter.x
-    cuts = sorted(set(cuts))
-    error = {lo: segmenter.error(lo, hi, tolerance) for lo, hi in itertools.pairwise(cuts)}
-    blocked: set[int] = set()
-    while len(cuts) - 1 < max_segments:
-        worst, worst_err = -1, tolerance
-        for idx, lo in enumerate(cuts[:-1]):
-            if lo not in blocked and error[lo] > worst_err:
-                worst, worst_err = idx, error[lo]
-        if worst < 0:
-            break
-        lo, hi = cuts[worst], cuts[worst + 1]
-        cand = np.arange(lo + min_samples, hi - min_samples + 1)
-        if cand.size:
-            ok = (np.abs(x[cand] - x[lo]) >= min_delta) & (np.abs(x[hi] - x[cand]) >= min_delta)
-            cand = cand[ok]
-        if cand.size == 0:
-            blocked.add(lo)
-            continue
-        if cand.size > 128:  # at most ~128 evenly spaced candidates
-            cand = cand[:: math.ceil(cand.size / 128)]
-        s = int(cand[int(np.argmin(segmenter.split_sse(lo, hi, cand)))])
-        cuts.insert(worst + 1, s)
-        error[lo] = segmenter.error(lo, s, tolerance)
-        error[s] = segmenter.error(s, hi, tolerance)
-    return cuts
+    greedy = [_Greedy(sorted(set(c)), tolerance, max_segments) for c in cuts]
+    first = [(g, lo, hi) for g, gr in enumerate(greedy) for lo, hi in itertools.pairwise(gr.cuts)]
+    errors = _errors([(segmenters[g], lo, hi) for g, lo, hi in first], tolerance)
+    for (g, lo, _), err in zip(first, errors, strict=True):
+        greedy[g].error[lo] = err
+    pending = {g: gr.advance() for g, gr in enumerate(greedy)}
+    while any(pending.values()):
+        splits = []  # (dimension, lo, hi, candidates)
+        for g, segments in pending.items():
+            for lo, hi in segments:
+                cand = segmenters[g].split_candidates(lo, hi, min_samples, min_delta)
+                if cand.size:
+                    splits.append((g, lo, hi, cand))
+                else:
+                    greedy[g].split[(lo, hi)] = None
+        halves = []
+        if splits:
+            points = _split_points([(segmenters[g], lo, hi, cand) for g, lo, hi, cand in splits])
+            for (g, lo, hi, _), s in zip(splits, points, strict=True):
+                greedy[g].split[(lo, hi)] = s
+                halves += [(g, lo, s), (g, s, hi)]
+        errors = _errors([(segmenters[g], lo, hi) for g, lo, hi in halves], tolerance)
+        for (g, lo, hi), err in zip(halves, errors, strict=True):
+            greedy[g].node_error[(lo, hi)] = err
+        pending = {g: greedy[g].advance() for g in pending if pending[g]}
+    return [gr.cuts for gr in greedy]
 
 
 def _merge_short(cuts: list[int], fixed: set[int], x: NDArray, min_delta: float) -> list[int]:
@@ -407,6 +573,113 @@ def _merge_short(cuts: list[int], fixed: set[int], x: NDArray, min_delta: float)
             out.append(c)
     out.append(cuts[-1])
     return out
+
+
+def _hold(x: NDArray, duration: float) -> DimensionFit:
+    """A dimension that barely moves, ``x (T,)``: one rest-to-rest segment, ``k = −(π/T_demo)²``."""
+    knots = np.array([x[0], x[-1]])
+    kappa = np.array([(math.pi / duration) ** 2])
+    k = -kappa.copy()
+    dur = np.array([time_to_reach(x[0], 0.0, x[-1], 0.0, k[0]) if x[-1] != x[0] else 0.0])
+    return DimensionFit(
+        knots=knots,
+        velocities=np.zeros(2),
+        k=k,
+        kappa=kappa,
+        durations=dur,
+        cut_indices=np.array([0, x.shape[0] - 1]),
+        hold=True,
+    )
+
+
+def _chain(segmenter: _Segmenter, cuts: list[int]) -> DimensionFit:
+    """The learned PSTF chain of one dimension through the via-points at samples ``cuts``."""
+    x = segmenter.x
+    cut_idx = np.asarray(cuts, dtype=np.int64)
+    bounds = [segmenter.boundary(lo, hi) for lo, hi in itertools.pairwise(cuts)]
+    knots = x[cut_idx].copy()
+    # A via-point's velocity must suit both segments it joins (noise can flip a near-zero one).
+    vel = np.array([b[1] for b in bounds] + [0.0])
+    vel[1:-1] = np.where(vel[1:-1] * np.array([b[3] for b in bounds[:-1]]) > 0.0, vel[1:-1], 0.0)
+    kappa = np.array([segmenter.kappa(lo, hi) for lo, hi in itertools.pairwise(cuts)])
+    segmenter.v_knot[cut_idx] = vel  # the split search is over: only slope() reads it from here
+    k = np.array([segmenter.slope(lo, hi) for lo, hi in itertools.pairwise(cuts)])
+    durations = np.array(
+        [time_to_reach(knots[s], vel[s], knots[s + 1], vel[s + 1], k[s]) for s in range(k.size)]
+    )
+    return DimensionFit(
+        knots=knots,
+        velocities=vel,
+        k=k,
+        kappa=kappa,
+        durations=durations,
+        cut_indices=cut_idx,
+        hold=False,
+    )
+
+
+def fit_dimensions(
+    demo_t: NDArray,
+    x: NDArray,
+    v: NDArray,
+    a: NDArray,
+    dt: float,
+    segments: str | int | Sequence[float],
+    hold_tolerance: float,
+    auto_tolerance: float,
+    max_segments: int,
+    min_speed_ratio: float,
+    min_segment_samples: int,
+    k_fit: str = "least_squares",
+) -> list[DimensionFit]:
+    """Learn the PSTF chain of every dimension from smoothed samples ``x, v, a (T, D)``.
+
+    The result equals :func:`fit_dimension` of each dimension (the dimensions are independent);
+    learning them together lets ``"auto"`` batch its numerical work across dimensions.
+    """
+    T, D = x.shape
+    duration = float(demo_t[-1])
+    holds = [bool(float(np.ptp(x[:, d])) < hold_tolerance) for d in range(D)]
+    # Motions start and end at rest (a robot starts a skill standing still; a demonstration's
+    # first and last velocities are sensor noise around zero), and reverse at rest.
+    v_knot = v.copy()
+    v_knot[0] = 0.0
+    v_knot[-1] = 0.0
+    fixed: dict[int, set[int]] = {}
+    for d in range(D):
+        if not holds[d]:
+            turns = turning_points(x[:, d], hold_tolerance)
+            fixed[d] = {0, T - 1, *turns}
+            v_knot[turns, d] = 0.0
+    if not fixed:  # nothing moves (segments is not even looked at, as for one hold dimension)
+        return [_hold(x[:, d], duration) for d in range(D)]
+    samples = _Samples(demo_t, x, v_knot, a, dt, min_speed_ratio)
+    segmenters = {d: _Segmenter(samples, d, min_speed_ratio, k_fit) for d in fixed}
+    if isinstance(segments, str):
+        if segments != "auto":
+            raise ParameterError(f"segments must be 'auto', an int or cut times, got {segments!r}")
+        cuts = [_merge_short(sorted(fixed[d]), fixed[d], x[:, d], hold_tolerance) for d in fixed]
+        cuts = _auto_cuts(
+            cuts,
+            list(segmenters.values()),
+            auto_tolerance,
+            min_segment_samples,
+            hold_tolerance,
+            max_segments,
+        )
+    else:
+        if isinstance(segments, int | np.integer):
+            if segments < 1:
+                raise ParameterError(f"segments must be >= 1, got {segments}")
+            times = np.linspace(0.0, duration, int(segments) + 1)[1:-1]
+        else:
+            times = np.asarray(segments, dtype=float).ravel()
+            if not np.all(np.isfinite(times)) or np.any((times <= 0) | (times >= duration)):
+                raise ParameterError(f"cut times must lie strictly inside (0, {duration:g}) s")
+        extra = {round(tc / dt) for tc in times}
+        cuts = [_merge_short(sorted(fixed[d] | extra), fixed[d], x[:, d], hold_tolerance) for d in fixed]
+    chains = iter(_chain(segmenters[d], c) for d, c in zip(fixed, cuts, strict=True))
+    return [_hold(x[:, d], duration) if holds[d] else next(chains) for d in range(D)]
 
 
 def fit_dimension(
@@ -429,57 +702,17 @@ def fit_dimension(
     reversals are added as cuts), or a sequence of cut times [s] from the demonstration's start.
     A dimension whose range is below ``hold_tolerance`` [unit] becomes one rest-to-rest hold.
     """
-    T = x.shape[0]
-    duration = float(demo_t[-1])
-    if float(np.ptp(x)) < hold_tolerance:
-        knots = np.array([x[0], x[-1]])
-        kappa = np.array([(math.pi / duration) ** 2])
-        k = -kappa.copy()
-        dur = np.array([time_to_reach(x[0], 0.0, x[-1], 0.0, k[0]) if x[-1] != x[0] else 0.0])
-        return DimensionFit(
-            knots=knots, velocities=np.zeros(2), k=k, kappa=kappa, durations=dur,
-            cut_indices=np.array([0, T - 1]), hold=True,
-        )
-    turns = turning_points(x, hold_tolerance)
-    fixed = {0, T - 1, *turns}
-    # Motions start and end at rest (a robot starts a skill standing still; a demonstration's
-    # first and last velocities are sensor noise around zero), and reverse at rest.
-    v_knot = v.copy()
-    v_knot[turns] = 0.0
-    v_knot[0] = 0.0
-    v_knot[-1] = 0.0
-    segmenter = _Segmenter(demo_t, x, v_knot, dt, _PrefixSums(x, a), min_speed_ratio, k_fit)
-    if isinstance(segments, str):
-        if segments != "auto":
-            raise ParameterError(f"segments must be 'auto', an int or cut times, got {segments!r}")
-        cuts = _merge_short(sorted(fixed), fixed, x, hold_tolerance)
-        cuts = auto_cuts(cuts, segmenter, auto_tolerance, min_segment_samples, hold_tolerance, max_segments)
-    else:
-        if isinstance(segments, int | np.integer):
-            if segments < 1:
-                raise ParameterError(f"segments must be >= 1, got {segments}")
-            times = np.linspace(0.0, duration, int(segments) + 1)[1:-1]
-        else:
-            times = np.asarray(segments, dtype=float).ravel()
-            if not np.all(np.isfinite(times)) or np.any((times <= 0) | (times >= duration)):
-                raise ParameterError(f"cut times must lie strictly inside (0, {duration:g}) s")
-        extra = {round(tc / dt) for tc in times}
-        cuts = _merge_short(sorted(fixed | extra), fixed, x, hold_tolerance)
-    cut_idx = np.asarray(cuts, dtype=np.int64)
-    bounds = [segmenter.boundary(lo, hi) for lo, hi in itertools.pairwise(cuts)]
-    knots = x[cut_idx].copy()
-    # A via-point's velocity must suit both segments it joins (noise can flip a near-zero one).
-    vel = np.array([b[1] for b in bounds] + [0.0])
-    vel[1:-1] = np.where(vel[1:-1] * np.array([b[3] for b in bounds[:-1]]) > 0.0, vel[1:-1], 0.0)
-    kappa = np.array([segmenter.kappa(lo, hi) for lo, hi in itertools.pairwise(cuts)])
-    v_fit = segmenter.v_knot.copy()
-    v_fit[cut_idx] = vel
-    segmenter.v_knot = v_fit
-    k = np.array([segmenter.slope(lo, hi) for lo, hi in itertools.pairwise(cuts)])
-    durations = np.array(
-        [time_to_reach(knots[s], vel[s], knots[s + 1], vel[s + 1], k[s]) for s in range(k.size)]
-    )
-    return DimensionFit(
-        knots=knots, velocities=vel, k=k, kappa=kappa, durations=durations,
-        cut_indices=cut_idx, hold=False,
-    )
+    return fit_dimensions(
+        demo_t,
+        x[:, None],
+        v[:, None],
+        a[:, None],
+        dt,
+        segments,
+        hold_tolerance=hold_tolerance,
+        auto_tolerance=auto_tolerance,
+        max_segments=max_segments,
+        min_speed_ratio=min_speed_ratio,
+        min_segment_samples=min_segment_samples,
+        k_fit=k_fit,
+    )[0]

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from psm.controller import DimensionChain, PSMController
 from psm.errors import ModelFileError, ParameterError, ShapeError
-from psm.fitting import DimensionFit, fit_dimension, smooth, validate_demonstration
+from psm.fitting import DimensionFit, fit_dimensions, smooth, validate_demonstration
 
 #: Identifies a saved model file; bump :data:`FORMAT_VERSION` on any incompatible change.
 FORMAT_NAME = "psm-model"
@@ -186,19 +186,15 @@ class PhaseSpaceModel:
         if scale == 0.0:
             scale = 1.0
         min_samples = max(3, round(float(smoothing) / demo.dt))
-        fits = []
-        for d in range(D):
-            fits.append(
-                fit_dimension(
-                    demo.t, demo.x[:, d], demo.v[:, d], demo.a[:, d], demo.dt, segments,
-                    hold_tolerance=hold_tolerance * scale,
-                    auto_tolerance=auto_tolerance * scale,
-                    max_segments=int(max_segments),
-                    min_speed_ratio=float(min_speed_ratio),
-                    min_segment_samples=min_samples,
-                    k_fit=k_fit,
-                )
-            )
+        fits = fit_dimensions(
+            demo.t, demo.x, demo.v, demo.a, demo.dt, segments,
+            hold_tolerance=hold_tolerance * scale,
+            auto_tolerance=auto_tolerance * scale,
+            max_segments=int(max_segments),
+            min_speed_ratio=float(min_speed_ratio),
+            min_segment_samples=min_samples,
+            k_fit=k_fit,
+        )
         if wrong_way_accel is None:
             amax = np.max(np.abs(demo.a), axis=0)
             m = np.where(amax > 0, amax, float(np.max(amax)) or 1.0)

@@ -89,9 +89,7 @@ def is_stable(v_c: float, v_n: float, delta: float, k: float) -> bool:
     return k < k_max(v_c, v_n, delta)
 
 
-def kinetic_energy(
-    s: ArrayLike, v_c: float, v_n: float, delta: float, k: float
-) -> NDArray[np.float64]:
+def kinetic_energy(s: ArrayLike, v_c: float, v_n: float, delta: float, k: float) -> NDArray[np.float64]:
     """Kinetic energy per unit mass ``v²/2`` [unit²/s²] at the fraction ``s ∈ [0, 1]`` of the segment:
     ``KE(s) = (1 − s) E_c + s E_n − (k Δ²/2) s (1 − s)``. ``s``: any shape."""
     s = np.asarray(s, dtype=float)
@@ -158,6 +156,55 @@ def position(t: float, x_c: float, v_c: float, k: float, c: float) -> float:
     return x_c + v_c * t * s_ + (k * x_c + c) * t * t * g_
 
 
+def positions(
+    t: ArrayLike, x_c: ArrayLike, v_c: ArrayLike, k: ArrayLike, c: ArrayLike
+) -> NDArray[np.float64]:
+    """:func:`position` vectorised over many segments and times: element ``i`` is the PSTF of the
+    segment ``(x_c[i], v_c[i], k[i], c[i])`` at ``t[i]`` [s] (all arguments broadcast together;
+    ``x_c`` [unit], ``v_c`` [unit/s], ``k`` [1/s²], ``c`` [unit/s²]). Unlike :func:`propagate`,
+    ``k`` may differ (and change sign) from element to element.
+
+    The same formula, branches and series as :func:`position`, so the two agree to rounding.
+    Returns positions [unit] of the broadcast shape; an overflowing element is ``inf``/``nan``
+    instead of raising.
+    """
+    t, x_c, v_c, k, c = np.broadcast_arrays(*(np.asarray(q, dtype=float) for q in (t, x_c, v_c, k, c)))
+    return positions_from_acceleration(t, x_c, v_c, k, k * x_c + c)
+
+
+def positions_from_acceleration(
+    t: NDArray[np.float64],
+    x_c: NDArray[np.float64],
+    v_c: NDArray[np.float64],
+    k: NDArray[np.float64],
+    a_c: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """:func:`positions` given the initial accelerations ``a_c = k x_c + c`` [unit/s²] instead of
+    ``c``, for float arrays of one shape (no conversion or broadcasting: the inner loop of the
+    fit, where numpy's per-call cost matters). ``t`` [s], ``x_c`` [unit], ``v_c`` [unit/s],
+    ``k`` [1/s²]; returns positions [unit] of that shape."""
+    z = k * t * t
+    abs_z = np.abs(z)
+    r = np.sqrt(abs_z)
+    grows = z > 0.0
+    with np.errstate(all="ignore"):
+        # z > 0: S = sinh(r)/r, G = (cosh r − 1)/z; z < 0: sin(r)/r, (1 − cos r)/r²; small |z|: series
+        # (z = 0 gets the series and NaN stays NaN on either branch, so one branch may serve all).
+        if not grows.any():
+            s_ = np.sin(r) / r
+            g_ = (1.0 - np.cos(r)) / (r * r)
+        elif not (z < 0.0).any():
+            s_ = np.sinh(r) / r
+            g_ = (np.cosh(r) - 1.0) / z
+        else:
+            s_ = np.where(grows, np.sinh(r), np.sin(r)) / r
+            g_ = np.where(grows, np.cosh(r) - 1.0, 1.0 - np.cos(r)) / np.where(grows, z, r * r)
+    small = abs_z < _Z_SERIES
+    s_ = np.where(small, 1.0 + z / 6.0 + z * z / 120.0, s_)
+    g_ = np.where(small, 0.5 + z / 24.0 + z * z / 720.0, g_)
+    return x_c + v_c * t * s_ + a_c * t * t * g_
+
+
 def time_to_reach(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> float:
     """Time [s] the PSTF with slope ``k`` takes from ``(x_c, v_c)`` to ``(x_n, v_n)`` (eqs. 11–12).
 
@@ -202,9 +249,7 @@ def _travel_time(delta: float, c0: float, v_c: float, v_n: float, k: float, t0: 
     return 0.0 if dtheta > 1.5 * math.pi else dtheta / w
 
 
-def k_for_duration(
-    x_c: float, v_c: float, x_n: float, v_n: float, duration: float, k_high: float
-) -> float:
+def k_for_duration(x_c: float, v_c: float, x_n: float, v_n: float, duration: float, k_high: float) -> float:
     """The slope ``k`` [1/s²] whose PSTF goes from ``(x_c, v_c)`` to ``(x_n, v_n)`` in ``duration`` [s].
 
     The time to reach grows strictly with ``k`` (a larger ``k`` lowers the kinetic energy at every
