@@ -15,7 +15,9 @@ Protocol (details in the report's method section and in ``docs/benchmarks.md``):
   [mm]). Each model is run from demo 0's start (reproduction) and from the start points of
   demos 1..6 (compared against those demos). Metrics from :mod:`benchmarks.metrics`.
   PSM: ``PhaseSpaceModel.fit(t, X)`` with defaults (``segments="auto"``, ``smoothing=0.02``),
-  ``rollout(x0, dt=demo dt, max_duration=2 x demo duration)``. DMP: ``DMP(n_dims=2,
+  ``rollout(x0, dt=demo dt, max_duration=2 x demo duration)``, plus the configurations of
+  :data:`PSM_VARIANTS` (the paper's eq. 14 synchronisation, start retiming, and a segmentation
+  capped below DMP-50's parameter count) in the same run. DMP: ``DMP(n_dims=2,
   execution_time=demo duration, dt=demo dt, n_weights_per_dim=10 | 50)``, ``imitate(t, X)``,
   ``configure(start_y=x0)``, ``open_loop()`` (library default step function ``rk4-cython``).
 - Speed: fit vs imitate (same demo), PSM ``controller.step`` vs DMP ``step`` (``rk4-cython``
@@ -49,8 +51,35 @@ from benchmarks.metrics import trajectory_metrics
 
 FloatArray = NDArray[np.float64]
 
-METHODS: tuple[str, ...] = ("psm", "dmp10", "dmp50")
-METHOD_LABELS: dict[str, str] = {"psm": "PSM", "dmp10": "DMP-10", "dmp50": "DMP-50"}
+#: PSM configurations run side by side: ``(fit keyword arguments, rollout keyword arguments)``,
+#: the same for every shape (nothing is tuned per shape). ``psm``: the library defaults ("scale"
+#: synchronisation); ``psm_paper``: the same model run with the paper's eq. 14 braking (the
+#: library default before the "scale" mode existed); ``psm_shift``: defaults plus the start shift
+#: (via-points displaced by the start's offset, fading to nothing at the goal); ``psm_retime``:
+#: defaults plus start retiming; ``psm_budget``: a finer segmentation (``auto_tolerance`` 1e-3)
+#: capped at 12 segments per dimension, i.e. at most 12 x 4 = 48 numbers per dimension (via-point
+#: position, velocity and demonstration time, and k), below DMP-50's 50 weights (+ start and
+#: goal) per dimension.
+PSM_VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
+    "psm": ({}, {}),
+    "psm_paper": ({}, {"sync_mode": "brake"}),
+    "psm_shift": ({}, {"start_shift": True}),
+    "psm_retime": ({}, {"start_retime": True}),
+    "psm_budget": ({"auto_tolerance": 1e-3, "max_segments": 12}, {}),
+}
+PSM_NUMBERS_PER_SEGMENT = 4
+#: Methods of the per-shape tables (the other PSM configurations get a table of their own).
+TABLE_METHODS: tuple[str, ...] = ("psm", "dmp10", "dmp50")
+METHODS: tuple[str, ...] = (*PSM_VARIANTS, "dmp10", "dmp50")
+METHOD_LABELS: dict[str, str] = {
+    "psm": "PSM",
+    "psm_paper": "PSM-eq14",
+    "psm_shift": "PSM-shift",
+    "psm_retime": "PSM-retime",
+    "psm_budget": "PSM-≤50",
+    "dmp10": "DMP-10",
+    "dmp50": "DMP-50",
+}
 DMP_WEIGHTS: dict[str, int] = {"dmp10": 10, "dmp50": 50}
 METRICS: tuple[str, ...] = ("rmse", "dtw", "frechet", "final")
 METRIC_LABELS: dict[str, str] = {
@@ -141,17 +170,18 @@ def load_shape(name: str) -> list[Demo]:
 # ---------------------------------------------------------------------------- learners
 
 
-def fit_psm(demo: Demo) -> Any:
-    """``PhaseSpaceModel.fit`` with the library defaults (auto segments, 0.02 s smoothing)."""
+def fit_psm(demo: Demo, **options: Any) -> Any:
+    """``PhaseSpaceModel.fit`` with the library defaults (auto segments, 0.02 s smoothing) unless
+    ``options`` override keyword arguments."""
     from psm import PhaseSpaceModel
 
-    return PhaseSpaceModel.fit(demo.t, demo.x, segments="auto", smoothing=0.02)
+    return PhaseSpaceModel.fit(demo.t, demo.x, segments="auto", smoothing=0.02, **options)
 
 
-def run_psm(model: Any, x0: FloatArray, dt: float, max_duration: float) -> Run:
+def run_psm(model: Any, x0: FloatArray, dt: float, max_duration: float, **options: Any) -> Run:
     """PSM rollout from rest at ``x0`` towards the learned goal, time step ``dt`` [s]."""
     t0 = time.perf_counter()
-    r = model.rollout(x0, v0=None, goal=None, dt=dt, max_duration=max_duration)
+    r = model.rollout(x0, v0=None, goal=None, dt=dt, max_duration=max_duration, **options)
     wall = time.perf_counter() - t0
     return Run(t=np.asarray(r.t, float), x=np.asarray(r.x, float), done=bool(r.done), wall_s=wall)
 
@@ -246,7 +276,9 @@ def evaluate_shape(
         "methods": {},
     }
     traj: dict[str, Any] = {"demos": [d.x for d in demos], "runs": {}}
-    fitters: dict[str, Callable[[], Any]] = {"psm": lambda: fit_psm(demo0)}
+    fitters: dict[str, Callable[[], Any]] = {
+        name: (lambda fit_kw=fit_kw: fit_psm(demo0, **fit_kw)) for name, (fit_kw, _) in PSM_VARIANTS.items()
+    }
     for method, n_w in DMP_WEIGHTS.items():
         fitters[method] = lambda n_w=n_w: fit_dmp(demo0, n_w)
     fitted = _fit_interleaved(fitters, repeats)
@@ -259,7 +291,8 @@ def evaluate_shape(
             result["methods"][method] = entry
             continue
         entry["fit_s"] = fit_s
-        if method == "psm":
+        is_psm = method in PSM_VARIANTS
+        if is_psm:
             entry["nominal_duration_s"] = float(model.duration)
             entry["segments_per_dim"] = [len(k) for k in model.k]
         traj["runs"][method] = {}
@@ -267,8 +300,10 @@ def evaluate_shape(
             target = demos[i]
             x0 = target.x[0]
             try:
-                if method == "psm":
-                    run = run_psm(model, x0, dt, PSM_MAX_DURATION_FACTOR * duration)
+                if is_psm:
+                    run = run_psm(
+                        model, x0, dt, PSM_MAX_DURATION_FACTOR * duration, **PSM_VARIANTS[method][1]
+                    )
                 else:
                     run = run_dmp(model, x0)
             except Exception as exc:
@@ -291,7 +326,7 @@ def evaluate_shape(
             else:
                 entry["problems"].append(f"start {i}: {problem}")
                 rec["error"] = problem
-            if method == "psm" and not run.done:
+            if is_psm and not run.done:
                 entry["problems"].append(
                     f"start {i}: goal not reached within {PSM_MAX_DURATION_FACTOR:g}x the "
                     f"demo duration (final error {np.linalg.norm(run.x[-1] - demo0.x[-1]):.3g} mm)"
@@ -347,7 +382,16 @@ def aggregate(shapes: dict[str, dict[str, Any]]) -> dict[str, Any]:
     A shape where PSM failed (error/NaN/divergence) counts as PSM > DMP-50; medians and means
     are over the shapes where the method produced a number (``n`` says how many).
     """
-    agg: dict[str, Any] = {}
+    agg: dict[str, Any] = {"segments": {}}
+    for variant in PSM_VARIANTS:
+        per_dim = [n for s in shapes.values() for n in s["methods"][variant].get("segments_per_dim", [])]
+        agg["segments"][variant] = {
+            "median_per_dim": float(np.median(per_dim)) if per_dim else None,
+            "mean_per_dim": float(np.mean(per_dim)) if per_dim else None,
+            "max_per_dim": max(per_dim, default=None),
+            "numbers_per_dim_mean": PSM_NUMBERS_PER_SEGMENT * float(np.mean(per_dim)) if per_dim else None,
+            "numbers_per_dim_max": PSM_NUMBERS_PER_SEGMENT * max(per_dim) if per_dim else None,
+        }
     for cond in CONDITIONS:
         agg[cond] = {}
         for metric in METRICS:
@@ -362,19 +406,21 @@ def aggregate(shapes: dict[str, dict[str, Any]]) -> dict[str, Any]:
                     "mean": float(np.mean(good)) if good else None,
                     "n": len(good),
                 }
-            wins = 0
+            wins = dict.fromkeys(PSM_VARIANTS, 0)
             compared = 0
             for s in shapes.values():
                 d50 = s["methods"]["dmp50"].get("summary", {}).get(cond, {}).get(metric)
-                p = s["methods"]["psm"].get("summary", {}).get(cond, {}).get(metric)
                 if d50 is None:
                     continue
                 compared += 1
-                if p is not None and p <= d50:
-                    wins += 1
-            cell["psm_le_dmp50"] = wins
+                for variant in PSM_VARIANTS:
+                    p = s["methods"][variant].get("summary", {}).get(cond, {}).get(metric)
+                    if p is not None and p <= d50:
+                        wins[variant] += 1
+            cell["psm_le_dmp50"] = wins["psm"]
+            cell["le_dmp50"] = wins
             cell["shapes_compared"] = compared
-            cell["target_met"] = compared > 0 and wins > compared / 2
+            cell["target_met"] = compared > 0 and wins["psm"] > compared / 2
             agg[cond][metric] = cell
     return agg
 
@@ -657,7 +703,19 @@ from demo 0's time stamps (`t[1] - t[0]`, 2.5–8 ms depending on the shape).
 **Learning.** Both learners see ONLY demonstration 0 of each shape.
 - *PSM*: `PhaseSpaceModel.fit(t, X, segments="auto", smoothing=0.02)` (library defaults), then
   `model.rollout(x0, dt=dt, max_duration=2 × demo duration)`; the rollout stops by itself when
-  the goal is held, so its duration is an output (reported as `T_PSM`).
+  the goal is held, so its duration is an output (reported as `T_PSM`). Five configurations,
+  the same for every shape (nothing is tuned per shape):
+  *PSM* = library defaults (`sync_mode="scale"`, `auto_tolerance=5e-3`, `max_segments=24`);
+  *PSM-eq14* = the same model run with `sync_mode="brake"`, the paper's eq. 14 (the library
+  default before this report); *PSM-shift* = defaults with `start_shift=True` (from another
+  start the via-points are displaced by the start's offset, fading linearly to nothing at the
+  goal, as a DMP's start offset fades; off by default because it gives up the paper's
+  via-points fixed relative to the goal); *PSM-retime* = defaults with `start_retime=True` (the
+  segment the motion starts in keeps its demonstrated duration from any start point);
+  *PSM-≤50* = `auto_tolerance=1e-3, max_segments=12`: at most 12 segments × 4 numbers (via-point
+  position, velocity, demonstration time, slope k) = 48 numbers per dimension, no more than
+  DMP-50's 50 weights (+ start and goal) per dimension. The *Model size* table gives the
+  segment counts actually used.
 - *DMP*: `movement_primitives` 0.9.1 `DMP(n_dims=2, execution_time=demo duration, dt=dt,
   n_weights_per_dim=10 or 50)` with the library's default gains (α_y = 25, β_y = 6.25, no
   smooth scaling), `imitate(t, X)`, then `configure(start_y=x0)` and `open_loop()` with the
@@ -692,8 +750,10 @@ DTW and Fréchet use an O(N·M) dynamic programme vectorised over anti-diagonals
 checked against a textbook double loop in `tests/benchmarks/test_metrics.py`.
 
 **Aggregation.** Per condition and metric: median and mean over shapes for each method, and the
-number of shapes where PSM ≤ DMP-50. A run that fails (exception, NaN, divergence beyond 3× the
-demo's extent) makes its cell `FAIL`, counts as PSM > DMP-50, and is listed under problems.
+number of shapes where each PSM configuration ≤ DMP-50 (the targets use the default *PSM*);
+"ratios of medians" divide the PSM median by the DMP median. A run that fails (exception, NaN,
+divergence beyond 3× the demo's extent) makes its cell `FAIL`, counts as PSM > DMP-50, and is
+listed under problems.
 The accuracy target "PSM error at or below DMP-50 on most LASA shapes" is judged per metric
 and condition as "more than half of the shapes".
 
@@ -745,19 +805,61 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
         L.append(f"### {CONDITION_LABELS[cond]}")
         L.append("")
         L.append(
-            "| metric | PSM median | DMP-10 median | DMP-50 median | PSM mean | DMP-10 mean "
-            "| DMP-50 mean | shapes PSM ≤ DMP-50 |"
+            "| metric | "
+            + " | ".join(f"{METHOD_LABELS[m]} median" for m in METHODS)
+            + " | "
+            + " | ".join(f"{METHOD_LABELS[m]} mean" for m in METHODS)
+            + " | "
+            + " | ".join(f"shapes {METHOD_LABELS[v]} ≤ DMP-50" for v in PSM_VARIANTS)
+            + " |"
         )
-        L.append("|---|---|---|---|---|---|---|---|")
+        L.append("|---" * (1 + 2 * len(METHODS) + len(PSM_VARIANTS)) + "|")
         for metric in METRICS:
             c = agg[cond][metric]
+            wins = c.get("le_dmp50", {"psm": c["psm_le_dmp50"]})
             L.append(
                 f"| {METRIC_LABELS[metric]} | "
                 + " | ".join(_fmt(c[m]["median"]) for m in METHODS)
                 + " | "
                 + " | ".join(_fmt(c[m]["mean"]) for m in METHODS)
-                + f" | {c['psm_le_dmp50']} / {c['shapes_compared']} |"
+                + " | "
+                + " | ".join(f"{wins.get(v, '–')} / {c['shapes_compared']}" for v in PSM_VARIANTS)
+                + " |"
             )
+        L.append("")
+        L.append(
+            "Ratios of medians: "
+            + ", ".join(
+                f"{METRIC_LABELS[metric]} PSM / DMP-50 = "
+                f"{_ratio(agg[cond][metric]['psm']['median'], agg[cond][metric]['dmp50']['median'])}, "
+                f"PSM / DMP-10 = "
+                f"{_ratio(agg[cond][metric]['psm']['median'], agg[cond][metric]['dmp10']['median'])}"
+                for metric in METRICS
+                if metric != "final"
+            )
+            + "."
+        )
+        L.append("")
+    seg = agg.get("segments")
+    if seg:
+        L.append("### Model size")
+        L.append("")
+        L.append(
+            f"A PSM segment holds {PSM_NUMBERS_PER_SEGMENT} numbers per dimension (end via-point "
+            "position, velocity and demonstration time, slope k; κ and the nominal duration follow "
+            "from them); a DMP holds its weights per dimension plus start and goal."
+        )
+        L.append("")
+        L.append("| model | segments per dim (median / mean / max) | numbers per dim (mean / max) |")
+        L.append("|---|---|---|")
+        for v in PSM_VARIANTS:
+            g = seg[v]
+            L.append(
+                f"| {METHOD_LABELS[v]} | {_fmt(g['median_per_dim'])} / {_fmt(g['mean_per_dim'])} / "
+                f"{g['max_per_dim']} | {_fmt(g['numbers_per_dim_mean'])} / {g['numbers_per_dim_max']} |"
+            )
+        for m, n_w in DMP_WEIGHTS.items():
+            L.append(f"| {METHOD_LABELS[m]} | – | {n_w} + 2 |")
         L.append("")
     if speed:
         L.append("## Speed")
@@ -816,13 +918,16 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
         L.append(f"## Per shape: {CONDITION_LABELS[cond]}")
         L.append("")
         L.append(
-            "Each cell: PSM / DMP-10 / DMP-50. `T_demo`: duration of the compared demo(s), "
+            "Each cell: "
+            + " / ".join(METHOD_LABELS[m] for m in TABLE_METHODS)
+            + " (the other PSM configurations: see *PSM configurations per shape* below). "
+            "`T_demo`: duration of the compared demo(s), "
             "`T_PSM`: duration of the PSM rollout (DMP runs exactly the demo-0 duration). "
-            "`≤` lists the metrics where PSM ≤ DMP-50."
+            "`segs`: PSM segments per dimension. `≤` lists the metrics where PSM ≤ DMP-50."
         )
         L.append("")
-        L.append("| shape | T_demo [s] | T_PSM [s] | RMSE | DTW | Fréchet | final-point | ≤ |")
-        L.append("|---|---|---|---|---|---|---|---|")
+        L.append("| shape | T_demo [s] | T_PSM [s] | segs | RMSE | DTW | Fréchet | final-point | ≤ |")
+        L.append("|---|---|---|---|---|---|---|---|---|")
         for name, s in shapes.items():
             summ = {m: s["methods"][m].get("summary", {}).get(cond, {}) for m in METHODS}
             runs0 = s["methods"]["psm"]["runs"]
@@ -834,13 +939,15 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
             cells = []
             wins = []
             for metric in METRICS:
-                vals = [summ[m].get(metric) for m in METHODS]
+                vals = [summ[m].get(metric) for m in TABLE_METHODS]
                 cells.append(" / ".join(_fmt(v) for v in vals))
-                if vals[0] is not None and vals[2] is not None and vals[0] <= vals[2]:
+                p, d50 = summ["psm"].get(metric), summ["dmp50"].get(metric)
+                if p is not None and d50 is not None and p <= d50:
                     wins.append(METRIC_LABELS[metric])
             t_demo = _fmt(float(np.mean(tgt))) if tgt else "–"
+            segs = "+".join(str(n) for n in s["methods"]["psm"].get("segments_per_dim", []))
             L.append(
-                f"| {name} | {t_demo} | {_fmt(summ['psm'].get('duration_s'))} | "
+                f"| {name} | {t_demo} | {_fmt(summ['psm'].get('duration_s'))} | {segs or '–'} | "
                 + " | ".join(cells)
                 + f" | {', '.join(wins) or '–'} |"
             )
@@ -867,6 +974,39 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
             f"({', '.join(f'{v:.1f}' for v in wd['x'])}) |"
         )
     L.append("")
+    L.append("## PSM configurations per shape")
+    L.append("")
+    L.append(
+        "Each cell: "
+        + " / ".join(METHOD_LABELS[m] for m in (*PSM_VARIANTS, "dmp50"))
+        + "; `segs`: segments per dimension of PSM / PSM-≤50 (the other configurations run the "
+        "PSM model)."
+    )
+    L.append("")
+    L.append(
+        "| shape | segs | RMSE reproduction | Fréchet reproduction | RMSE other starts "
+        "| Fréchet other starts |"
+    )
+    L.append("|---|---|---|---|---|---|")
+    for name, s in shapes.items():
+        cells = []
+        for cond, metric in (
+            ("reproduction", "rmse"),
+            ("reproduction", "frechet"),
+            ("other_starts", "rmse"),
+            ("other_starts", "frechet"),
+        ):
+            vals = [
+                s["methods"][m].get("summary", {}).get(cond, {}).get(metric) for m in (*PSM_VARIANTS, "dmp50")
+            ]
+            cells.append(" / ".join(_fmt(v) for v in vals))
+        segs = " / ".join(
+            "+".join(str(n) for n in s["methods"][m].get("segments_per_dim", []))
+            for m in ("psm", "psm_budget")
+            if m in s["methods"]
+        )
+        L.append(f"| {name} | {segs} | " + " | ".join(cells) + " |")
+    L.append("")
     L.append("## Problems observed")
     L.append("")
     problems = [
@@ -886,6 +1026,10 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
     L.append("![LASA overview](learner_lasa.png)")
     L.append("")
     path.write_text("\n".join(L), encoding="utf-8")
+
+
+def _ratio(a: float | None, b: float | None) -> str:
+    return "–" if a is None or not b else f"{a / b:.2f}"
 
 
 def _ms(v: float | None) -> str:

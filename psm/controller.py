@@ -9,8 +9,19 @@ pushes, moved starts and moving goals (paper §III-C..F, DESIGN §4):
   clamped to ``ρ k_max(v, v_n, Δ) − κ`` so a perturbed state never makes the segment unstable;
 * **wrong direction** (eq. 10): a velocity pointing away from ``x_n`` gets a constant acceleration
   ``m`` towards it until it is zero;
-* **synchronisation** (eq. 14): a dimension whose time to completion ``t_e`` is below the largest one
-  ``t_E`` is braked with ``−T v (t_E − t_e)``;
+* **synchronisation**: a dimension whose time to completion ``t_e`` is below the largest one
+  ``t_E`` is slowed. ``sync_mode="brake"`` is the paper's eq. 14, ``−T v (t_E − t_e)`` with ``t_e``
+  from the nominal segment durations (eq. 13); ``"scale"`` compares the dimensions on the
+  demonstration's own clock (``t_e`` = time to the next via-point + the demonstration time after
+  it) and time-scales a dimension that is ahead by the lead ``L``: its law runs at the rate
+  ``s = 1 − L/τ`` and ``−(1−s) v/τ`` brakes it, so at ``L ≥ τ`` it holds still (a dwell of one
+  dimension while another moves is kept); ``sync_gain = 0`` switches either off;
+* **start shift** (option ``start_shift``): from a start other than the demonstrated one, the
+  via-points are displaced by the start's offset, fading linearly to nothing at the goal over the
+  nominal duration (see :meth:`PSMController._shift_start`);
+* **start retiming** (option ``start_retime``): at the first step the slope of the segment the
+  motion starts in is re-solved so that the segment keeps its nominal duration from the actual
+  start (as a DMP keeps its execution time);
 * **collision stop** (eq. 15): a per-dimension request "stop at x_ob" decelerates with
   ``−v²/(2(x_ob − x))`` while the obstacle lies between the state and the via-point;
 * **saturation**: the segment law (with the synchronisation term) is limited to
@@ -33,13 +44,18 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from psm.errors import ParameterError, ShapeError
-from psm.pstf import k_limit, time_to_reach
+from psm.pstf import k_for_duration, k_limit, time_to_reach
 
 #: Controller modes of one dimension (reported by :attr:`PSMController.modes`).
 MODE_SEGMENT = "segment"
 MODE_WRONG_WAY = "wrong_way"
 MODE_STOP = "collision_stop"
 MODE_TERMINAL = "terminal"
+
+#: Synchronisation modes: the paper's eq. 14 braking, or time-scaling on a shared progress.
+SYNC_BRAKE = "brake"
+SYNC_SCALE = "scale"
+SYNC_MODES = (SYNC_BRAKE, SYNC_SCALE)
 
 
 @dataclass(frozen=True)
@@ -48,6 +64,8 @@ class DimensionChain:
 
     ``offsets (N+1,)`` via-point positions minus the goal [unit] (last is 0), ``velocities (N+1,)``
     [unit/s] (last is 0), ``k (N,)`` [1/s²], ``kappa (N,)`` [1/s²], ``durations (N,)`` [s].
+    ``demo_tails (N,)`` [s], optional: the demonstration time left after each segment's end
+    via-point (used by the ``"scale"`` synchronisation; default: the nominal durations' sums).
     """
 
     offsets: tuple[float, ...]
@@ -56,6 +74,7 @@ class DimensionChain:
     kappa: tuple[float, ...]
     durations: tuple[float, ...]
     hold: bool
+    demo_tails: tuple[float, ...] | None = None
 
 
 class PSMController:
@@ -78,17 +97,45 @@ class PSMController:
         velocity_tolerance: float,
         terminal_omega: float | None = None,
         max_acceleration: NDArray[np.float64] | None = None,
+        sync_mode: str = SYNC_BRAKE,
+        sync_time: float = 0.1,
+        start_retime: bool = False,
+        start_shift: bool = False,
     ) -> None:
+        if sync_mode not in SYNC_MODES:
+            raise ParameterError(f"sync_mode must be one of {SYNC_MODES}, got {sync_mode!r}")
+        if not (math.isfinite(sync_time) and sync_time > 0.0):
+            raise ParameterError(f"sync_time must be a finite number > 0, got {sync_time}")
         self._D = len(chains)
         self._chains = chains
         self._n = [len(c.k) for c in chains]
-        # tail[d][j]: nominal duration of the segments after segment j.
+        self._sync_mode = sync_mode
+        self._sync_time = float(sync_time)
+        self._start_retime = bool(start_retime)
+        # Start retiming: the slope of the segment the motion starts in, re-solved once so that
+        # the segment keeps its nominal duration from wherever the motion starts (segment, k).
+        self._retime_pending = [True] * len(chains)
+        self._shift_pending = [True] * len(chains)
+        self._k_start: list[tuple[int, float] | None] = [None] * len(chains)
+        self._start_shift = bool(start_shift)
+        self._offsets = [list(c.offsets) for c in chains]
+        self._vels = [list(c.velocities) for c in chains]
+        # weight of a start displacement at each via-point: the nominal time left there / total
+        self._shift_weight = [
+            [float(sum(c.durations[j:])) / max(float(sum(c.durations)), 1e-300) for j in range(len(c.k) + 1)]
+            for c in chains
+        ]
+        # tail[d][j]: time after segment j's end via-point. Eq. 14 ("brake") uses the nominal
+        # durations of the later segments (eq. 13); "scale" uses the demonstration's own schedule
+        # (the same clock for every dimension) when the chain carries it.
         self._tail = [
-            [float(sum(c.durations[j + 1 :])) for j in range(len(c.k))] for c in chains
+            list(c.demo_tails)
+            if sync_mode == SYNC_SCALE and c.demo_tails is not None
+            else [float(sum(c.durations[j + 1 :])) for j in range(len(c.k))]
+            for c in chains
         ]
         self._dir = [
-            [math.copysign(1.0, c.offsets[j + 1] - c.offsets[j]) for j in range(len(c.k))]
-            for c in chains
+            [math.copysign(1.0, c.offsets[j + 1] - c.offsets[j]) for j in range(len(c.k))] for c in chains
         ]
         self._m = [float(m) for m in wrong_way_accel]
         self._a_max = (
@@ -105,6 +152,7 @@ class PSMController:
         self._stops: list[float | None] = [None] * self._D
         self._t_e = [float(sum(c.durations)) for c in chains]
         self._modes = [MODE_SEGMENT] * self._D
+        self._returning = [False] * self._D
         self._done = False
         self.set_goal(goal)
 
@@ -175,6 +223,11 @@ class PSMController:
     def reset(self) -> None:
         """Start the motion over (first segment) with the current goal."""
         self._segment = [0] * self._D
+        self._retime_pending = [True] * self._D
+        self._shift_pending = [True] * self._D
+        self._k_start = [None] * self._D
+        self._offsets = [list(c.offsets) for c in self._chains]
+        self._vels = [list(c.velocities) for c in self._chains]
         self._terminal = [False] * self._D
         self._k_cap = [math.inf] * self._D
         self._done = False
@@ -198,7 +251,9 @@ class PSMController:
             acc[d] = a
             t_e[d] = te
             self._modes[d] = mode
-            braking[d] = mode == MODE_SEGMENT and not self._chains[d].hold
+            # Hold dimensions, stopped ones and one returning from an overshoot of its goal (a
+            # correction, not demonstrated progress) take no part in the synchronisation.
+            braking[d] = mode == MODE_SEGMENT and not self._chains[d].hold and not self._returning[d]
             if not (
                 mode == MODE_TERMINAL
                 and abs(xs[d] - self._goal[d]) <= self._pos_tol
@@ -206,13 +261,33 @@ class PSMController:
             ):
                 all_done = False
         self._done = all_done
-        # Eq. 14: slow the dimensions ahead of the slowest one.
         gain = self._sync_gain
         if gain > 0.0 and D > 1:
             t_big = max((t_e[d] for d in range(D) if braking[d] and t_e[d] < math.inf), default=0.0)
-            for d in range(D):
-                if braking[d] and t_e[d] < t_big:
-                    acc[d] -= gain * vs[d] * (t_big - t_e[d])
+            if self._sync_mode == SYNC_BRAKE:
+                # Eq. 14: slow the dimensions ahead of the slowest one.
+                for d in range(D):
+                    if braking[d] and t_e[d] < t_big:
+                        acc[d] -= gain * vs[d] * (t_big - t_e[d])
+            else:
+                # Time scaling on a shared progress: a dimension whose time to completion is
+                # shorter than the slowest one's by the lead L runs at the rate s = 1 − L/τ
+                # (τ = sync_time, s ≥ 0): a law that speeds it up (or starts it from rest) is
+                # scaled by s, and −(1−s) v/τ brakes it towards rest. At L ≥ τ it holds still: a
+                # dwell is kept while the others catch up. A slowed dimension's own t_e grows, so
+                # the lead closes from both sides; the reference (the slowest) always runs its
+                # own law, so nothing can wait for ever.
+                tau = self._sync_time
+                for d in range(D):
+                    if braking[d] and t_e[d] < t_big:
+                        s = 1.0 - (t_big - t_e[d]) / tau
+                        if s < 0.0:
+                            s = 0.0
+                        a_d = acc[d]
+                        if a_d * vs[d] > 0.0 or vs[d] == 0.0:
+                            a_d *= s  # speeding up: slowed time scales the push
+                        # (a deceleration is never weakened: that would overshoot the via-point)
+                        acc[d] = a_d - (1.0 - s) * vs[d] / tau
         # The segment law is exact but not gentle: a state pushed right in front of a reversal would
         # have to stop within millimetres. Saturate it; the state then overshoots the via-point and
         # the next segment (or eq. 10) brings it back. Collision stops are never saturated.
@@ -235,12 +310,17 @@ class PSMController:
             if 2.0 * abs(v) <= a_max * dt * 5.0 and abs(x - g) <= 100.0 * self._pos_tol:
                 return self._terminal_law(x - g, v, dt, a_max), 0.0, MODE_TERMINAL
             self._terminal[d] = False  # knocked off the goal: the last segment's law takes over
-        offsets, dirs, m = chain.offsets, self._dir[d], self._m[d]
+        if self._shift_pending[d]:
+            self._shift_pending[d] = False
+            if self._start_shift and not chain.hold:
+                self._shift_start(d, x - g)
+        offsets, dirs, m = self._offsets[d], self._dir[d], self._m[d]
+        vels = self._vels[d]
         pos_tol = self._pos_tol
         j = self._segment[d]
         while True:
             x_n = g + offsets[j + 1]
-            v_n = chain.velocities[j + 1]
+            v_n = vels[j + 1]
             delta = x_n - x
             last = j == n - 1
             if not last and delta * dirs[j] <= 0.0:
@@ -264,12 +344,30 @@ class PSMController:
             v_eff = v if v_along >= 0.0 else 0.0  # a wrong-way speed below one tick of m is rest
             if j != self._segment[d]:
                 self._k_cap[d] = math.inf
+            k_learned = chain.k[j]
+            if self._retime_pending[d]:
+                # First step of the motion: the start may lie anywhere (another start point than
+                # the demonstration's). Re-solve this segment's k once so that it takes its
+                # nominal duration from here, as the demonstration's did from its via-point.
+                self._retime_pending[d] = False
+                if self._start_retime and not chain.hold and not wrong_way:
+                    k_hi = k_limit(v_eff, v_n, delta, chain.kappa[j])
+                    if k_hi > -math.inf and chain.durations[j] > 0.0:
+                        k_new = k_for_duration(x, v_eff, x_n, v_n, chain.durations[j], k_hi)
+                        if math.isfinite(k_new):
+                            self._k_start[d] = (j, k_new)
+            ks = self._k_start[d]
+            if ks is not None:
+                if ks[0] == j:
+                    k_learned = ks[1]
+                else:
+                    self._k_start[d] = None
             # Clamp k below the stability bound of the measured state. The clamp only tightens
             # within a segment: re-solving from each new state would otherwise ride the bound
             # and creep (the bound rises as the segment progresses).
             k_stable = k_limit(v_eff, v_n, delta, chain.kappa[j])
-            k_eff = min(chain.k[j], k_stable, self._k_cap[d])
-            if k_eff < chain.k[j]:
+            k_eff = min(k_learned, k_stable, self._k_cap[d])
+            if k_eff < k_learned:
                 self._k_cap[d] = k_eff
             # Keep the law within the acceleration limit where the via-point allows it: the line
             # c₀ + k (x − m) peaks at an end, so |k Δ/2| <= a_max − |c₀| bounds it on the segment.
@@ -291,6 +389,7 @@ class PSMController:
                 continue
             break
         self._segment[d] = j
+        self._returning[d] = last and delta * dirs[j] < 0.0
         # Capture only a state the holding spring can absorb within the acceleration limit (one
         # that arrives too fast overshoots, and the last segment's law brings it back).
         slow_enough = 2.0 * abs(v) <= a_max * dt * 5.0
@@ -331,9 +430,38 @@ class PSMController:
         a = (v_eff * c_m1 + a_c * dt * s_) / dt + (v_eff - v) / dt
         return a, te, MODE_SEGMENT
 
+    def _shift_start(self, d: int, x_rel: float) -> None:
+        """Start shift of dimension ``d`` started at ``x_rel`` (relative to the goal).
+
+        The demonstration plus a displacement ``δ (1 − τ/T)`` that fades linearly over the nominal
+        time ``τ`` from the demonstrated start (``δ`` = start − demonstrated start, ``T`` = nominal
+        duration): via-point ``j`` moves by ``δ w_j`` (``w_j`` = nominal time left there / ``T``: 1
+        at the first, 0 at the goal) and its velocity by that displacement's velocity ``−δ/T``. A
+        segment the shift would reverse is collapsed to zero length (the progress rule then skips
+        it); a via-point velocity that would point against one of its segments becomes 0 (as at a
+        reversal), so every segment stays monotone and the PSTF's stability bound holds."""
+        chain = self._chains[d]
+        base = chain.offsets
+        w = self._shift_weight[d]
+        delta0 = x_rel - base[0]
+        out = [base[i] + delta0 * w[i] for i in range(len(base))]
+        out[-1] = base[-1]
+        dirs = self._dir[d]
+        for j in range(len(base) - 2):
+            if (out[j + 1] - out[j]) * dirs[j] < 0.0:
+                out[j + 1] = out[j]
+        self._offsets[d] = out
+        total = float(sum(chain.durations))
+        dv = -delta0 / total if total > 0.0 else 0.0
+        vel = list(chain.velocities)
+        for i in range(1, len(vel) - 1):
+            if vel[i] != 0.0:
+                shifted = vel[i] + dv
+                vel[i] = shifted if shifted * dirs[i - 1] > 0.0 and shifted * dirs[i] > 0.0 else 0.0
+        self._vels[d] = vel
+
     def _terminal_law(self, error: float, v: float, dt: float, a_max: float) -> float:
         """Critically damped hold of the goal, ``−ω² e − 2ω v`` (``ω`` = terminal_omega or
         ``0.2/dt``), limited to ``±a_max``."""
         w = self._terminal_omega if self._terminal_omega is not None else 0.2 / dt
         return max(-a_max, min(a_max, -w * w * error - 2.0 * w * v))
-

@@ -16,14 +16,14 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from psm.controller import DimensionChain, PSMController
+from psm.controller import SYNC_MODES, DimensionChain, PSMController
 from psm.errors import ModelFileError, ParameterError, ShapeError
 from psm.fitting import DimensionFit, fit_dimensions, smooth, validate_demonstration
 
@@ -58,7 +58,15 @@ class ModelParameters:
     * ``max_acceleration (D,)`` [unit/s²]: saturation of the segment law (default 3 ``m``);
     * ``k_fit``: how each segment's ``k`` was chosen: ``"least_squares"`` in the
       position–acceleration plane as in the paper, or ``"duration"``: the ``k`` whose closed-form
-      segment time equals the demonstrated one.
+      segment time equals the demonstrated one;
+    * ``sync_mode``: ``"brake"`` (the paper's eq. 14, ``−T v (t_E − t_e)``) or ``"scale"`` (time
+      scaling on the demonstration's schedule, see :class:`psm.controller.PSMController`) and
+      ``sync_time`` [s]: the lead at which ``"scale"`` holds a dimension still;
+    * ``start_retime``: the segment the motion starts in keeps its nominal duration from any
+      start; ``start_shift``: via-points are displaced by the start's offset from the demonstrated
+      start, fading to nothing at the goal (see docs/psm.md, "Running").
+    Files written before the last four existed load as ``"brake"``, 0.1 s, off, off: they run as
+    they did.
     """
 
     smoothing: float
@@ -73,6 +81,10 @@ class ModelParameters:
     velocity_tolerance: float
     k_fit: str = "duration"
     max_acceleration: list[float] | None = None
+    sync_mode: str = "brake"
+    sync_time: float = 0.1
+    start_retime: bool = False
+    start_shift: bool = False
 
 
 @dataclass
@@ -128,6 +140,14 @@ class PhaseSpaceModel:
             if cut_times is not None
             else [list(map(float, f.cut_indices * demo_dt)) for f in fits]
         )
+        # The demonstration time left after each segment's end via-point: one clock for every
+        # dimension (the "scale" synchronisation compares dimensions on it).
+        self._chains = [
+            replace(c, demo_tails=tuple(max(0.0, self._demo_duration - tc) for tc in ct[1:]))
+            if len(ct) == len(c.k) + 1
+            else c
+            for c, ct in zip(self._chains, self._cut_times, strict=True)
+        ]
 
     # ------------------------------------------------------------------ learning
     @classmethod
@@ -144,6 +164,10 @@ class PhaseSpaceModel:
         min_speed_ratio: float = 0.5,
         wrong_way_accel: float | ArrayLike | None = None,
         sync_gain: float = 4.0,
+        sync_mode: str = "scale",
+        sync_time: float = 0.1,
+        start_retime: bool = False,
+        start_shift: bool = False,
         position_tolerance: float = 1e-4,
         velocity_tolerance: float = 1e-3,
         k_fit: str = "duration",
@@ -162,6 +186,9 @@ class PhaseSpaceModel:
         ``k_fit``: ``"duration"`` (default) gives each segment the ``k`` whose
         closed-form duration equals the demonstrated one; ``"least_squares"`` is the paper's
         least squares in the position–acceleration plane (see docs/psm.md for the comparison).
+        ``sync_gain``, ``sync_mode``, ``sync_time``, ``start_retime`` and ``start_shift`` are the
+        controller's defaults, stored with the model (see :class:`ModelParameters`; ``sync_mode``
+        ``"brake"`` is the paper's eq. 14).
         Raises :class:`psm.PSMError` subclasses on invalid input.
         """
         t_arr, X_arr = validate_demonstration(t, X)
@@ -176,6 +203,10 @@ class PhaseSpaceModel:
                 raise ParameterError(f"{name} must be a finite number > 0, got {value}")
         if not (math.isfinite(sync_gain) and sync_gain >= 0.0):
             raise ParameterError(f"sync_gain must be a finite number >= 0, got {sync_gain}")
+        if sync_mode not in SYNC_MODES:
+            raise ParameterError(f"sync_mode must be one of {SYNC_MODES}, got {sync_mode!r}")
+        if not (math.isfinite(sync_time) and sync_time > 0.0):
+            raise ParameterError(f"sync_time must be a finite number > 0, got {sync_time}")
         if k_fit not in ("least_squares", "duration"):
             raise ParameterError(f"k_fit must be 'least_squares' or 'duration', got {k_fit!r}")
         if int(max_segments) < 1:
@@ -221,12 +252,20 @@ class PhaseSpaceModel:
             velocity_tolerance=float(velocity_tolerance) * scale,
             k_fit=k_fit,
             max_acceleration=[float(e) for e in a_max],
+            sync_mode=sync_mode,
+            sync_time=float(sync_time),
+            start_retime=bool(start_retime),
+            start_shift=bool(start_shift),
         )
         # Goal and start are the demonstrated end points themselves (smoothing biases the ends
         # of a motion that is still settling); via-points are relative to the goal.
         return cls(
-            fits, goal=X_arr[-1], start=X_arr[0], demo_duration=float(demo.t[-1]),
-            demo_dt=demo.dt, parameters=params,
+            fits,
+            goal=X_arr[-1],
+            start=X_arr[0],
+            demo_duration=float(demo.t[-1]),
+            demo_dt=demo.dt,
+            parameters=params,
         )
 
     # ------------------------------------------------------------------ properties
@@ -302,11 +341,16 @@ class PhaseSpaceModel:
         sync_gain: float | None = None,
         wrong_way_accel: float | ArrayLike | None = None,
         terminal_omega: float | None = None,
+        sync_mode: str | None = None,
+        sync_time: float | None = None,
+        start_retime: bool | None = None,
+        start_shift: bool | None = None,
     ) -> PSMController:
         """An online controller towards ``goal (D,)`` [unit] (default: the demonstration's goal).
 
-        ``sync_gain`` and ``wrong_way_accel`` override the model's defaults; ``terminal_omega``
-        [rad/s] is the goal-holding spring's natural frequency (default ``0.2/dt``)."""
+        ``sync_gain``, ``sync_mode``, ``sync_time``, ``start_retime``, ``start_shift`` and
+        ``wrong_way_accel`` override the model's defaults; ``terminal_omega`` [rad/s] is the
+        goal-holding spring's natural frequency (default ``0.2/dt``)."""
         g = self._check_vector("goal", goal, self._goal)
         m = (
             np.asarray(self.parameters.wrong_way_accel)
@@ -320,9 +364,18 @@ class PhaseSpaceModel:
             raise ParameterError(f"sync_gain must be a finite number >= 0, got {gain}")
         a_max = self.parameters.max_acceleration
         return PSMController(
-            self._chains, g, m, gain, self.parameters.position_tolerance,
-            self.parameters.velocity_tolerance, terminal_omega,
+            self._chains,
+            g,
+            m,
+            gain,
+            self.parameters.position_tolerance,
+            self.parameters.velocity_tolerance,
+            terminal_omega,
             None if a_max is None else np.asarray(a_max, dtype=float),
+            sync_mode=self.parameters.sync_mode if sync_mode is None else sync_mode,
+            sync_time=self.parameters.sync_time if sync_time is None else float(sync_time),
+            start_retime=self.parameters.start_retime if start_retime is None else bool(start_retime),
+            start_shift=self.parameters.start_shift if start_shift is None else bool(start_shift),
         )
 
     def rollout(
@@ -336,6 +389,10 @@ class PhaseSpaceModel:
         disturbance: Disturbance | None = None,
         *,
         sync_gain: float | None = None,
+        sync_mode: str | None = None,
+        sync_time: float | None = None,
+        start_retime: bool | None = None,
+        start_shift: bool | None = None,
     ) -> Rollout:
         """Generate a motion from ``x0 (D,)`` [unit] (default: the demonstration's start) with initial
         velocity ``v0 (D,)`` [unit/s] (default 0) towards ``goal (D,)`` (default: the demonstration's).
@@ -344,6 +401,8 @@ class PhaseSpaceModel:
         over the step). ``goal_fn(t) -> (D,)`` replaces the goal over time; ``disturbance(t, x, v) ->
         (x, v)`` lets a caller push the state before each control step. Stops once the goal is held
         or after ``max_duration`` [s] (default: three times the nominal duration plus one second).
+        ``sync_gain``, ``sync_mode``, ``sync_time``, ``start_retime`` and ``start_shift`` override
+        the model's defaults for this rollout (see :meth:`controller`).
         """
         x = self._check_vector("x0", x0, self._start)
         v = self._check_vector("v0", v0, np.zeros(self.dim))
@@ -354,7 +413,14 @@ class PhaseSpaceModel:
             max_duration = 3.0 * self.duration + 1.0
         if not (math.isfinite(max_duration) and max_duration > 0.0):
             raise ParameterError(f"max_duration must be a finite number > 0, got {max_duration}")
-        ctrl = self.controller(g, sync_gain=sync_gain)
+        ctrl = self.controller(
+            g,
+            sync_gain=sync_gain,
+            sync_mode=sync_mode,
+            sync_time=sync_time,
+            start_retime=start_retime,
+            start_shift=start_shift,
+        )
         n_max = math.ceil(max_duration / dt) + 1
         D = self.dim
         ts = np.empty(n_max)
@@ -385,7 +451,12 @@ class PhaseSpaceModel:
             x = x + v * dt + 0.5 * a * dt * dt
             v = v + a * dt
         return Rollout(
-            t=ts[:n], x=xs[:n], v=vs[:n], a=acc[:n], goal=goals[:n], done=ctrl.done,
+            t=ts[:n],
+            x=xs[:n],
+            v=vs[:n],
+            a=acc[:n],
+            goal=goals[:n],
+            done=ctrl.done,
             segment=segs[:n],
         )
 
@@ -448,8 +519,12 @@ class PhaseSpaceModel:
                 raise ModelFileError(f"goal has {goal.size} entries for {len(fits)} dimensions")
             params = ModelParameters(**data["parameters"])
             model = cls(
-                fits, goal=goal, start=data["start"], demo_duration=data["demo_duration"],
-                demo_dt=data["demo_dt"], parameters=params,
+                fits,
+                goal=goal,
+                start=data["start"],
+                demo_duration=data["demo_duration"],
+                demo_dt=data["demo_dt"],
+                parameters=params,
                 cut_times=[item["cut_times"] for item in dims],
             )
         except ModelFileError:
