@@ -40,10 +40,19 @@ def test_learn_from_csv_then_rollout_to_a_new_goal(tmp_path: Path, reach_demo) -
 def test_learn_from_npz_with_uniform_segments(tmp_path: Path, reach_demo) -> None:
     t, X = reach_demo
     np.savez(tmp_path / "demo.npz", t=t, X=X)
-    r = run_psm("learn", str(tmp_path / "demo.npz"), "-o", str(tmp_path / "m.json"), "--segments", "5")
+    r = run_psm("learn", str(tmp_path / "demo.npz"), "-o", str(tmp_path / "m.json"), "--segments", "5",
+                "--sync", "brake", "--start-shift")
     assert r.returncode == 0, r.stderr
     data = json.loads((tmp_path / "m.json").read_text())
     assert data["format"] == "psm-model" and len(data["dimensions"][0]["k"]) == 5
+    assert data["parameters"]["sync_mode"] == "brake" and data["parameters"]["start_shift"] is True
+    r = run_psm("learn", str(tmp_path / "demo.npz"), "-o", str(tmp_path / "m2.json"),
+                "--auto-tolerance", "0.001")
+    assert r.returncode == 0, r.stderr
+    fine = json.loads((tmp_path / "m2.json").read_text())
+    assert fine["parameters"]["auto_tolerance"] == 0.001 and fine["parameters"]["sync_mode"] == "scale"
+    r = run_psm("learn", str(tmp_path / "demo.npz"), "--auto-tolerance", "-1")
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and "auto_tolerance" in r.stderr
 
 
 def test_bad_input_is_one_clear_line(tmp_path: Path) -> None:
