@@ -91,9 +91,11 @@ def _cpu_share(before: list[int], after: list[int]) -> dict[str, float]:
 
 def bench_timer(seconds: float, period_s: float = 0.001, spin: bool = False) -> dict[str, Any]:
     """Platform reference: a Python loop doing nothing but waiting for a deadline every
-    ``period_s`` (the same ``SimpleQueue.get(timeout)`` wait as the arm, or busy-waiting with
+    ``period_s`` (the same timed wait on the arm's command inbox, or busy-waiting with
     ``spin``), lateness in µs."""
-    q: queue.SimpleQueue[int] = queue.SimpleQueue()
+    from services.arm.service import command_inbox
+
+    q = command_inbox()
     period = int(period_s * 1e9)
     n = int(seconds / period_s)
     late = np.empty(n)

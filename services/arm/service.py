@@ -48,6 +48,19 @@ _RING = 1 << 20  # timing samples kept (about 35 min at 500 Hz)
 _PUB_RING = 1 << 12  # publish times kept to match late commands to their state
 
 
+def command_inbox() -> queue.Queue[tuple[Any, ...]]:
+    """The arm's inbox: Zenoh's threads put, the loop thread waits on it with a timeout.
+
+    A ``queue.Queue``, never a ``queue.SimpleQueue``: in CPython 3.11 a signal that interrupts
+    ``SimpleQueue.get(timeout=...)`` close to its deadline turns the wait into an unbounded one
+    (the recomputed timeout goes negative, and a negative timeout means "block forever"), so a
+    SIGTERM arriving while no command comes (the planner already stopped) could leave the loop
+    hanging in that wait. ``Queue.get`` waits on a lock whose timeout handling after a signal
+    is correct.
+    """
+    return queue.Queue()
+
+
 @dataclass
 class LoopStats:
     """Timing of the control loop (wall clock, ns) and event counts."""
@@ -116,7 +129,7 @@ class ArmService:
         self.keys = self.svc.keys
         self.dt_ns = section.dt_ns
         self.stats = LoopStats()
-        self._inbox: queue.SimpleQueue[tuple[Any, ...]] = queue.SimpleQueue()
+        self._inbox = command_inbox()
         self._pub_ns = np.zeros(_PUB_RING, dtype=np.int64)
         self._pub_tick = np.full(_PUB_RING, -1, dtype=np.int64)
         self._answered = -1  # highest tick for which an answer has been seen

@@ -3,6 +3,12 @@ watchdog brake and command validation."""
 
 from __future__ import annotations
 
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
 import numpy as np
 import pinocchio as pin
 import pytest
@@ -368,3 +374,25 @@ def test_custom_urdf_and_errors(tmp_path) -> None:
         robot.resolve_pose("nope")
     with pytest.raises(ValueError, match="outside"):
         robot.resolve_pose([5.0] * 7)
+
+
+def test_signal_safe_inbox() -> None:
+    """Signals hammering the arm's timed waits never turn them into unbounded ones: the loop
+    still sees SIGTERM (``queue.SimpleQueue.get(timeout)`` on CPython 3.11 can block for ever
+    after an interrupt near its deadline; that hung the arm at shutdown about once in ten)."""
+    child = subprocess.Popen(
+        [sys.executable, "-m", "tests.arm.signal_wait_child"],
+        cwd=Path(__file__).resolve().parents[2], stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert child.stdout is not None and child.stdout.readline().strip() == "ready"
+        rng = np.random.default_rng(7)
+        for _ in range(400):
+            child.send_signal(signal.SIGUSR1)
+            time.sleep(float(rng.uniform(0.0, 0.001)))
+        child.send_signal(signal.SIGTERM)
+        assert child.wait(5) == 0
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait(5)
