@@ -6,11 +6,12 @@ Pipeline for each dimension of a demonstration ``t (T,) [s]``, ``X (T, D)``:
 2. Gaussian-kernel smoothing (sigma in seconds) and numerical derivatives (:func:`smooth`);
 3. cut points: every direction reversal is a cut (:func:`turning_points`, a zig-zag filter with
    hysteresis so sensor noise is not a reversal); on top of that either the paper's cuts uniform in
-   time (``segments=N``), the user's cut times, or ``"auto"`` (:func:`auto_cuts`): top-down splitting
-   that minimises the piecewise-linear fit error in the position–acceleration plane until every
-   segment is under a tolerance;
+   time (``segments=N``), the user's cut times, or ``"auto"`` (:func:`_auto_cuts`): top-down
+   splitting at the point that minimises the piecewise-linear fit error in the position–acceleration
+   plane, until every segment's PSTF stays within a position tolerance of the demonstration;
 4. per segment: ``ẍ = c₀ + k (x − m)`` with ``c₀`` fixed by the boundary velocities (corrected eq. 5)
-   and ``k`` by closed-form least squares, clamped below the stability bound (:mod:`psm.pstf`).
+   and ``k`` by ``k_fit``: the demonstrated duration (default) or closed-form least squares, clamped
+   below the stability bound (:mod:`psm.pstf`).
 
 Least squares over any sample range is O(1) from prefix sums (:class:`_PrefixSums`), which makes
 ``"auto"`` a handful of vectorised passes instead of a search over all partitions. All dimensions
