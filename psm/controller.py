@@ -15,7 +15,9 @@ pushes, moved starts and moving goals (paper §III-C..F, DESIGN §4):
   demonstration's own clock (``t_e`` = time to the next via-point + the demonstration time after
   it) and time-scales a dimension that is ahead by the lead ``L``: its law runs at the rate
   ``s = 1 − L/τ`` and ``−(1−s) v/τ`` brakes it, so at ``L ≥ τ`` it holds still (a dwell of one
-  dimension while another moves is kept); ``sync_gain = 0`` switches either off;
+  dimension while another moves is kept). The part of a lead that a goal change opens is excused
+  (shrinking with the slowest ``t_E``), so a suddenly-ahead dimension slows over the rest of the
+  motion instead of stopping at once; ``sync_gain = 0`` switches either off;
 * **start shift** (option ``start_shift``): from a start other than the demonstrated one, the
   via-points are displaced by the start's offset, fading linearly to nothing at the goal over the
   nominal duration (see :meth:`PSMController._shift_start`);
@@ -153,6 +155,13 @@ class PSMController:
         self._t_e = [float(sum(c.durations)) for c in chains]
         self._modes = [MODE_SEGMENT] * self._D
         self._returning = [False] * self._D
+        # "scale" synchronisation: leads of the last step, the part of each lead a goal change
+        # opened (excused, shrinking with the slowest time to completion) [s]
+        self._goal: list[float] = []
+        self._goal_moved = False
+        self._lead = [0.0] * self._D
+        self._excused = [0.0] * self._D
+        self._t_big_prev = 0.0
         self._done = False
         self.set_goal(goal)
 
@@ -195,7 +204,10 @@ class PSMController:
             raise ShapeError(f"goal must have shape ({self._D},), got {np.shape(goal)}")
         if not np.all(np.isfinite(g)):
             raise ShapeError("goal must be finite")
-        self._goal = [float(e) for e in g]
+        goal = [float(e) for e in g]
+        if self._goal and goal != self._goal:
+            self._goal_moved = True
+        self._goal = goal
         self._terminal = [False] * self._D
         self._k_cap = [math.inf] * self._D
         self._done = False
@@ -231,6 +243,10 @@ class PSMController:
         self._terminal = [False] * self._D
         self._k_cap = [math.inf] * self._D
         self._done = False
+        self._goal_moved = False
+        self._lead = [0.0] * self._D
+        self._excused = [0.0] * self._D
+        self._t_big_prev = 0.0
 
     # ------------------------------------------------------------------ the control law
     def step(self, x: ArrayLike, v: ArrayLike, dt: float) -> NDArray[np.float64]:
@@ -278,9 +294,25 @@ class PSMController:
                 # the lead closes from both sides; the reference (the slowest) always runs its
                 # own law, so nothing can wait for ever.
                 tau = self._sync_time
+                lead_prev, excused = self._lead, self._excused
+                if self._goal_moved:
+                    # A lead that a goal change opens is not a demonstrated dwell: it is excused
+                    # and the excuse shrinks with the slowest dimension's time to completion, so
+                    # the dimension catches up by slowing over the rest of the motion instead of
+                    # holding still at once (the dimensions still arrive together).
+                    for d in range(D):
+                        lead = t_big - t_e[d] if braking[d] and t_e[d] < t_big else 0.0
+                        excused[d] += max(0.0, lead - lead_prev[d])
+                    self._goal_moved = False
+                elif 0.0 < t_big < self._t_big_prev:
+                    shrink = t_big / self._t_big_prev
+                    for d in range(D):
+                        excused[d] *= shrink
+                self._t_big_prev = t_big
                 for d in range(D):
+                    lead_prev[d] = t_big - t_e[d] if braking[d] and t_e[d] < t_big else 0.0
                     if braking[d] and t_e[d] < t_big:
-                        s = 1.0 - (t_big - t_e[d]) / tau
+                        s = 1.0 - max(0.0, t_big - t_e[d] - excused[d]) / tau
                         if s < 0.0:
                             s = 0.0
                         a_d = acc[d]

@@ -206,3 +206,34 @@ def test_start_shift_with_large_offsets_stays_safe(reach_demo, offset) -> None:
     assert r.done
     np.testing.assert_allclose(r.x[-1], g1, atol=model.parameters.position_tolerance)
     assert np.all(np.abs(np.diff(r.v, axis=0)) <= a_max * DT + 1e-9)
+
+
+def diagonal_demo() -> tuple[np.ndarray, np.ndarray]:
+    """A 2-D reach: x 0.3 m and y 0.2 m together, minimum jerk over 2 s."""
+    t = np.arange(0.0, 2.0 + 1e-9, DT)
+    s = minimum_jerk(t, 2.0)
+    return t, np.stack([0.3 * s, 0.2 * s], axis=1)
+
+
+def test_scale_sync_spreads_a_lead_opened_by_a_goal_jump() -> None:
+    """The goal jumps 0.3 m further in y at 40 % of the motion: y now needs longer, and x (ahead)
+    slows over the rest of the motion instead of stopping at once, yet both still arrive together
+    (without excusing such a lead, x braked to 13 % of its speed and waited)."""
+    t, X = diagonal_demo()
+    model = PhaseSpaceModel.fit(t, X)
+    g0 = model.goal
+    g1 = g0 + np.array([0.0, 0.3])
+    t_jump = 0.8
+    r = model.rollout(dt=DT, goal_fn=lambda s: g0 if s < t_jump else g1)
+    assert r.done
+    np.testing.assert_allclose(r.x[-1], g1, atol=1e-3)
+    after = (r.t > t_jump) & (r.x[:, 0] < g1[0] - 0.02)  # x still on its way (> 2 cm to go)
+    assert after.any()
+    x_speed = np.abs(r.v[after, 0])
+    # x keeps moving: its speed never drops below a fifth of its speed at the jump.
+    assert x_speed.min() > 0.2 * abs(r.v[np.searchsorted(r.t, t_jump), 0]), x_speed.min()
+    # ... and the dimensions still finish together: x is not done long before y.
+    x_arrival = r.t[np.argmax(np.abs(r.x[:, 0] - g1[0]) < 1e-3)]
+    y_arrival = r.t[np.argmax(np.abs(r.x[:, 1] - g1[1]) < 1e-3)]
+    assert abs(x_arrival - y_arrival) < 0.3, (x_arrival, y_arrival)
+    assert np.all(np.abs(r.a) <= np.asarray(model.parameters.max_acceleration) + 1e-9)
