@@ -60,6 +60,15 @@ SYNC_SCALE = "scale"
 SYNC_MODES = (SYNC_BRAKE, SYNC_SCALE)
 
 
+def validate_sync(sync_mode: str, sync_time: float) -> None:
+    """Raise :class:`ParameterError` unless ``sync_mode`` is one of :data:`SYNC_MODES` and
+    ``sync_time`` [s] is finite and > 0."""
+    if sync_mode not in SYNC_MODES:
+        raise ParameterError(f"sync_mode must be one of {SYNC_MODES}, got {sync_mode!r}")
+    if not (math.isfinite(sync_time) and sync_time > 0.0):
+        raise ParameterError(f"sync_time must be a finite number > 0, got {sync_time}")
+
+
 @dataclass(frozen=True)
 class DimensionChain:
     """One dimension's PSTF chain in goal-relative coordinates (what the controller runs).
@@ -104,24 +113,14 @@ class PSMController:
         start_retime: bool = False,
         start_shift: bool = False,
     ) -> None:
-        if sync_mode not in SYNC_MODES:
-            raise ParameterError(f"sync_mode must be one of {SYNC_MODES}, got {sync_mode!r}")
-        if not (math.isfinite(sync_time) and sync_time > 0.0):
-            raise ParameterError(f"sync_time must be a finite number > 0, got {sync_time}")
+        validate_sync(sync_mode, sync_time)
         self._D = len(chains)
         self._chains = chains
         self._n = [len(c.k) for c in chains]
         self._sync_mode = sync_mode
         self._sync_time = float(sync_time)
         self._start_retime = bool(start_retime)
-        # Start retiming: the slope of the segment the motion starts in, re-solved once so that
-        # the segment keeps its nominal duration from wherever the motion starts (segment, k).
-        self._retime_pending = [True] * len(chains)
-        self._shift_pending = [True] * len(chains)
-        self._k_start: list[tuple[int, float] | None] = [None] * len(chains)
         self._start_shift = bool(start_shift)
-        self._offsets = [list(c.offsets) for c in chains]
-        self._vels = [list(c.velocities) for c in chains]
         # weight of a start displacement at each via-point: the nominal time left there / total
         self._shift_weight = [
             [float(sum(c.durations[j:])) / max(float(sum(c.durations)), 1e-300) for j in range(len(c.k) + 1)]
@@ -147,22 +146,11 @@ class PSMController:
         self._pos_tol = float(position_tolerance)
         self._vel_tol = float(velocity_tolerance)
         self._terminal_omega = terminal_omega
-        self._goal = [0.0] * self._D
-        self._segment = [0] * self._D
-        self._terminal = [False] * self._D
-        self._k_cap = [math.inf] * self._D
+        self._goal: list[float] = []
         self._stops: list[float | None] = [None] * self._D
         self._t_e = [float(sum(c.durations)) for c in chains]
         self._modes = [MODE_SEGMENT] * self._D
-        self._returning = [False] * self._D
-        # "scale" synchronisation: leads of the last step, the part of each lead a goal change
-        # opened (excused, shrinking with the slowest time to completion) [s]
-        self._goal: list[float] = []
-        self._goal_moved = False
-        self._lead = [0.0] * self._D
-        self._excused = [0.0] * self._D
-        self._t_big_prev = 0.0
-        self._done = False
+        self.reset()
         self.set_goal(goal)
 
     # ------------------------------------------------------------------ public state
@@ -233,19 +221,25 @@ class PSMController:
         self._stops = [None] * self._D
 
     def reset(self) -> None:
-        """Start the motion over (first segment) with the current goal."""
-        self._segment = [0] * self._D
-        self._retime_pending = [True] * self._D
-        self._shift_pending = [True] * self._D
-        self._k_start = [None] * self._D
+        """Start the motion over (first segment) with the current goal (also the initial state)."""
+        D = self._D
+        self._segment = [0] * D
+        self._terminal = [False] * D
+        self._k_cap = [math.inf] * D
+        self._returning = [False] * D
+        self._done = False
+        # Start retiming and start shift act once, at the first step of a motion: the re-solved
+        # slope of the segment the motion starts in (segment, k), the shifted via-points.
+        self._retime_pending = [True] * D
+        self._shift_pending = [True] * D
+        self._k_start: list[tuple[int, float] | None] = [None] * D
         self._offsets = [list(c.offsets) for c in self._chains]
         self._vels = [list(c.velocities) for c in self._chains]
-        self._terminal = [False] * self._D
-        self._k_cap = [math.inf] * self._D
-        self._done = False
+        # "scale" synchronisation: leads of the last step and the part of each lead a goal change
+        # opened (excused, shrinking with the slowest time to completion) [s]
         self._goal_moved = False
-        self._lead = [0.0] * self._D
-        self._excused = [0.0] * self._D
+        self._lead = [0.0] * D
+        self._excused = [0.0] * D
         self._t_big_prev = 0.0
 
     # ------------------------------------------------------------------ the control law
@@ -295,24 +289,24 @@ class PSMController:
                 # own law, so nothing can wait for ever.
                 tau = self._sync_time
                 lead_prev, excused = self._lead, self._excused
+                leads = [t_big - t_e[d] if braking[d] and t_e[d] < t_big else 0.0 for d in range(D)]
                 if self._goal_moved:
                     # A lead that a goal change opens is not a demonstrated dwell: it is excused
                     # and the excuse shrinks with the slowest dimension's time to completion, so
                     # the dimension catches up by slowing over the rest of the motion instead of
                     # holding still at once (the dimensions still arrive together).
                     for d in range(D):
-                        lead = t_big - t_e[d] if braking[d] and t_e[d] < t_big else 0.0
-                        excused[d] += max(0.0, lead - lead_prev[d])
+                        excused[d] += max(0.0, leads[d] - lead_prev[d])
                     self._goal_moved = False
                 elif 0.0 < t_big < self._t_big_prev:
                     shrink = t_big / self._t_big_prev
                     for d in range(D):
                         excused[d] *= shrink
                 self._t_big_prev = t_big
+                self._lead = leads
                 for d in range(D):
-                    lead_prev[d] = t_big - t_e[d] if braking[d] and t_e[d] < t_big else 0.0
-                    if braking[d] and t_e[d] < t_big:
-                        s = 1.0 - max(0.0, t_big - t_e[d] - excused[d]) / tau
+                    if leads[d] > 0.0:
+                        s = 1.0 - max(0.0, leads[d] - excused[d]) / tau
                         if s < 0.0:
                             s = 0.0
                         a_d = acc[d]

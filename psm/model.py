@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from psm.controller import SYNC_MODES, DimensionChain, PSMController
+from psm.controller import DimensionChain, PSMController, validate_sync
 from psm.errors import ModelFileError, ParameterError, ShapeError
 from psm.fitting import DimensionFit, fit_dimensions, smooth, validate_demonstration
 
@@ -203,10 +203,7 @@ class PhaseSpaceModel:
                 raise ParameterError(f"{name} must be a finite number > 0, got {value}")
         if not (math.isfinite(sync_gain) and sync_gain >= 0.0):
             raise ParameterError(f"sync_gain must be a finite number >= 0, got {sync_gain}")
-        if sync_mode not in SYNC_MODES:
-            raise ParameterError(f"sync_mode must be one of {SYNC_MODES}, got {sync_mode!r}")
-        if not (math.isfinite(sync_time) and sync_time > 0.0):
-            raise ParameterError(f"sync_time must be a finite number > 0, got {sync_time}")
+        validate_sync(sync_mode, sync_time)
         if k_fit not in ("least_squares", "duration"):
             raise ParameterError(f"k_fit must be 'least_squares' or 'duration', got {k_fit!r}")
         if int(max_segments) < 1:
