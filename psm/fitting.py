@@ -635,8 +635,11 @@ def fit_dimensions(
 ) -> list[DimensionFit]:
     """Learn the PSTF chain of every dimension from smoothed samples ``x, v, a (T, D)``.
 
-    The result equals :func:`fit_dimension` of each dimension (the dimensions are independent);
-    learning them together lets ``"auto"`` batch its numerical work across dimensions.
+    The dimensions are independent: each result equals fitting that dimension alone (a ``(T, 1)``
+    call); learning them together lets ``"auto"`` batch its numerical work across dimensions.
+    ``segments``: ``"auto"``, a number of segments uniform in time (the paper's choice; direction
+    reversals are added as cuts), or a sequence of cut times [s] from the demonstration's start.
+    A dimension whose range is below ``hold_tolerance`` [unit] becomes one rest-to-rest hold.
     """
     T, D = x.shape
     duration = float(demo_t[-1])
@@ -681,39 +684,3 @@ def fit_dimensions(
         cuts = [_merge_short(sorted(fixed[d] | extra), fixed[d], x[:, d], hold_tolerance) for d in fixed]
     chains = iter(_chain(segmenters[d], c) for d, c in zip(fixed, cuts, strict=True))
     return [_hold(x[:, d], duration) if holds[d] else next(chains) for d in range(D)]
-
-
-def fit_dimension(
-    demo_t: NDArray,
-    x: NDArray,
-    v: NDArray,
-    a: NDArray,
-    dt: float,
-    segments: str | int | Sequence[float],
-    hold_tolerance: float,
-    auto_tolerance: float,
-    max_segments: int,
-    min_speed_ratio: float,
-    min_segment_samples: int,
-    k_fit: str = "least_squares",
-) -> DimensionFit:
-    """Learn the PSTF chain of one dimension from smoothed samples ``x, v, a (T,)``.
-
-    ``segments``: ``"auto"``, a number of segments uniform in time (the paper's choice; direction
-    reversals are added as cuts), or a sequence of cut times [s] from the demonstration's start.
-    A dimension whose range is below ``hold_tolerance`` [unit] becomes one rest-to-rest hold.
-    """
-    return fit_dimensions(
-        demo_t,
-        x[:, None],
-        v[:, None],
-        a[:, None],
-        dt,
-        segments,
-        hold_tolerance=hold_tolerance,
-        auto_tolerance=auto_tolerance,
-        max_segments=max_segments,
-        min_speed_ratio=min_speed_ratio,
-        min_segment_samples=min_segment_samples,
-        k_fit=k_fit,
-    )[0]

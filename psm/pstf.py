@@ -139,32 +139,15 @@ def propagate(
     return x, v
 
 
-def position(t: float, x_c: float, v_c: float, k: float, c: float) -> float:
-    """:func:`propagate` for one time ``t`` [s] on Python floats (no numpy: hot loops)."""
-    z = k * t * t
-    if abs(z) < _Z_SERIES:
-        s_ = 1.0 + z / 6.0 + z * z / 120.0
-        g_ = 0.5 + z / 24.0 + z * z / 720.0
-    elif z > 0.0:
-        r = math.sqrt(z)
-        s_ = math.sinh(r) / r
-        g_ = (math.cosh(r) - 1.0) / z
-    else:
-        r = math.sqrt(-z)
-        s_ = math.sin(r) / r
-        g_ = (1.0 - math.cos(r)) / (r * r)
-    return x_c + v_c * t * s_ + (k * x_c + c) * t * t * g_
-
-
 def positions(
     t: ArrayLike, x_c: ArrayLike, v_c: ArrayLike, k: ArrayLike, c: ArrayLike
 ) -> NDArray[np.float64]:
-    """:func:`position` vectorised over many segments and times: element ``i`` is the PSTF of the
-    segment ``(x_c[i], v_c[i], k[i], c[i])`` at ``t[i]`` [s] (all arguments broadcast together;
+    """The position of :func:`propagate`, vectorised over segments and times: element ``i`` is the
+    PSTF of segment ``(x_c[i], v_c[i], k[i], c[i])`` at ``t[i]`` [s] (arguments broadcast together;
     ``x_c`` [unit], ``v_c`` [unit/s], ``k`` [1/s²], ``c`` [unit/s²]). Unlike :func:`propagate`,
     ``k`` may differ (and change sign) from element to element.
 
-    The same formula, branches and series as :func:`position`, so the two agree to rounding.
+    The same formula and series as :func:`propagate`, so the two agree to rounding.
     Returns positions [unit] of the broadcast shape; an overflowing element is ``inf``/``nan``
     instead of raising.
     """

@@ -34,11 +34,11 @@ def _segment_batch(rng: np.random.Generator, n: int, k_sign: int) -> tuple[np.nd
 
 
 @pytest.mark.parametrize("k_sign", [0, -1, 1])
-def test_positions_equal_the_scalar_position(k_sign: int) -> None:
+def test_positions_equal_propagate(k_sign: int) -> None:
     rng = np.random.default_rng(11 + k_sign)
     t, x_c, v_c, k, c = _segment_batch(rng, 3000, k_sign)
     x = pstf.positions(t, x_c, v_c, k, c)
-    ref = np.array([pstf.position(*args) for args in zip(t, x_c, v_c, k, c, strict=True)])
+    ref = np.array([pstf.propagate(*args)[0] for args in zip(t, x_c, v_c, k, c, strict=True)])
     # Relative to the size of the terms summed (a position near 0 has no relative precision).
     scale = np.abs(x_c) + np.abs(v_c * t) + np.abs((k * x_c + c) * t * t) * np.cosh(np.sqrt(np.abs(k)) * t)
     assert np.all(np.abs(x - ref) <= 1e-12 * scale)
@@ -161,7 +161,7 @@ def _reference_deviation(seg: fitting._Segmenter, lo: int, hi: int) -> float:
     worst = 0.0
     for i in range(lo, hi + 1, max(1, (hi - lo) // 32)):
         elapsed = float(seg.t[i]) - float(seg.t[lo])
-        x_model = pstf.position(elapsed, x_c, v_c, k, c) if elapsed <= t_end else x_n
+        x_model = float(pstf.propagate(elapsed, x_c, v_c, k, c)[0]) if elapsed <= t_end else x_n
         worst = max(worst, abs(x_model - float(seg.x[i])))
     return worst
 
@@ -248,8 +248,9 @@ def test_fitting_dimensions_together_equals_one_at_a_time(noisy_reach_demo) -> N
         )
         together = fitting.fit_dimensions(demo.t, demo.x, demo.v, demo.a, demo.dt, segments, **kw)
         for d, fit in enumerate(together):
-            alone = fitting.fit_dimension(
-                demo.t, demo.x[:, d], demo.v[:, d], demo.a[:, d], demo.dt, segments, **kw
+            one = slice(d, d + 1)
+            (alone,) = fitting.fit_dimensions(
+                demo.t, demo.x[:, one], demo.v[:, one], demo.a[:, one], demo.dt, segments, **kw
             )
             for field in ("knots", "velocities", "k", "kappa", "durations", "cut_indices"):
                 np.testing.assert_array_equal(getattr(fit, field), getattr(alone, field))
