@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from psm import PhaseSpaceModel, Rollout
+from psm.controller import SYNC_MODES
 from psm.errors import DemonstrationError
 from psm.fitting import smooth, validate_demonstration
 
@@ -127,9 +128,17 @@ def _segments_arg(text: str) -> str | int | list[float]:
 def cmd_learn(args: argparse.Namespace) -> int:
     """``psm learn DEMO -o MODEL``."""
     t, X, names = load_demonstration(Path(args.demo), args.columns, args.topic)
+    options = {  # only what was given: the model's own defaults stay the single source
+        name: value
+        for name, value in (
+            ("auto_tolerance", args.auto_tolerance),
+            ("sync_mode", args.sync),
+            ("start_shift", args.start_shift or None),
+        )
+        if value is not None
+    }
     model = PhaseSpaceModel.fit(
-        t, X, segments=args.segments, smoothing=args.smoothing, k_fit=args.k_fit,
-        auto_tolerance=args.auto_tolerance, sync_mode=args.sync, start_shift=args.start_shift,
+        t, X, segments=args.segments, smoothing=args.smoothing, k_fit=args.k_fit, **options
     )
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -236,11 +245,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--smoothing", type=float, default=0.02, help="Gaussian smoothing sigma [s]")
     p.add_argument("--k-fit", choices=("duration", "least_squares"), default="duration",
                    help="how each segment's k is chosen")
-    p.add_argument("--auto-tolerance", type=float, default=5e-3,
-                   help="'auto' segmentation: position budget per segment, share of the range")
-    p.add_argument("--sync", choices=("scale", "brake"), default="scale",
-                   help="synchronisation of the dimensions: time scaling (default) or the "
-                   "paper's eq. 14 braking")
+    p.add_argument("--auto-tolerance", type=float,
+                   help="'auto' segmentation: position budget per segment, share of the range "
+                   "(default 0.005)")
+    p.add_argument("--sync", choices=SYNC_MODES,
+                   help="synchronisation of the dimensions: 'scale' (time scaling, default) or "
+                   "'brake' (the paper's eq. 14)")
     p.add_argument("--start-shift", action="store_true",
                    help="spread a start offset over the motion (fading to 0 at the goal)")
     p.add_argument("--columns", nargs="+", help="CSV columns to learn (default: all but t)")

@@ -155,10 +155,10 @@ class ZenohConfig:
     low_latency: bool = spec(
         False,
         "zenoh's low-latency unicast transport (no batching pipeline, QoS priorities off); used "
-        "on a link only if both ends enable it. For the arm<->planner control loop: it cuts the "
-        "loopback round trip about 2-3x here. Not for sessions that send messages near or above "
-        "64 KiB (camera images): the low-latency transport does not fragment and was measured "
-        "to drop some of them",
+        "on a link only if both ends enable it. For the arm<->planner control loop (see "
+        "docs/bus.md for what it measured here). Not for sessions that send messages near or "
+        "above 64 KiB (camera images): the low-latency transport does not fragment and was "
+        "measured to drop some of them",
     )
 
     def validate(self) -> None:
