@@ -185,8 +185,9 @@ def _raw_config(low_latency: bool, **endpoints: str) -> Any:
         conf.insert_json5(f"{kind}/endpoints", json.dumps([endpoint]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     if low_latency:
-        conf.insert_json5("transport/unicast/lowlatency", "true")
-        conf.insert_json5("transport/unicast/qos/enabled", "false")
+        from services.bus.runtime import enable_low_latency
+
+        enable_low_latency(conf)
     return conf
 
 

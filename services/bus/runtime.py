@@ -192,10 +192,15 @@ def zenoh_config(cfg: ZenohConfig) -> Any:
     if cfg.shared_memory:
         conf.insert_json5("transport/shared_memory/enabled", "true")
     if cfg.low_latency:
-        # Zenoh refuses the low-latency transport together with QoS (it has one queue).
-        conf.insert_json5("transport/unicast/lowlatency", "true")
-        conf.insert_json5("transport/unicast/qos/enabled", "false")
+        enable_low_latency(conf)
     return conf
+
+
+def enable_low_latency(conf: Any) -> None:
+    """Switch a ``zenoh.Config`` to the low-latency unicast transport (``zenoh.low_latency``).
+    Zenoh refuses it together with QoS (the transport has a single queue), so QoS goes off."""
+    conf.insert_json5("transport/unicast/lowlatency", "true")
+    conf.insert_json5("transport/unicast/qos/enabled", "false")
 
 
 def open_session(cfg: ZenohConfig) -> Any:
