@@ -59,13 +59,15 @@ FloatArray = NDArray[np.float64]
 #: defaults plus start retiming; ``psm_budget``: a finer segmentation (``auto_tolerance`` 1e-3)
 #: capped at 12 segments per dimension, i.e. at most 12 x 4 = 48 numbers per dimension (via-point
 #: position, velocity and demonstration time, and k), below DMP-50's 50 weights (+ start and
-#: goal) per dimension.
+#: goal) per dimension; ``psm_fine``: ``auto_tolerance`` 1e-3 with up to 32 segments per dimension
+#: (the accuracy the segmentation reaches when the parameter count is not capped).
 PSM_VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "psm": ({}, {}),
     "psm_paper": ({}, {"sync_mode": "brake"}),
     "psm_shift": ({}, {"start_shift": True}),
     "psm_retime": ({}, {"start_retime": True}),
     "psm_budget": ({"auto_tolerance": 1e-3, "max_segments": 12}, {}),
+    "psm_fine": ({"auto_tolerance": 1e-3, "max_segments": 32}, {}),
 }
 PSM_NUMBERS_PER_SEGMENT = 4
 #: Methods of the per-shape tables (the other PSM configurations get a table of their own).
@@ -77,6 +79,7 @@ METHOD_LABELS: dict[str, str] = {
     "psm_shift": "PSM-shift",
     "psm_retime": "PSM-retime",
     "psm_budget": "PSM-≤50",
+    "psm_fine": "PSM-fine",
     "dmp10": "DMP-10",
     "dmp50": "DMP-50",
 }
@@ -703,7 +706,7 @@ from demo 0's time stamps (`t[1] - t[0]`, 2.5–8 ms depending on the shape).
 **Learning.** Both learners see ONLY demonstration 0 of each shape.
 - *PSM*: `PhaseSpaceModel.fit(t, X, segments="auto", smoothing=0.02)` (library defaults), then
   `model.rollout(x0, dt=dt, max_duration=2 × demo duration)`; the rollout stops by itself when
-  the goal is held, so its duration is an output (reported as `T_PSM`). Five configurations,
+  the goal is held, so its duration is an output (reported as `T_PSM`). Six configurations,
   the same for every shape (nothing is tuned per shape):
   *PSM* = library defaults (`sync_mode="scale"`, `auto_tolerance=5e-3`, `max_segments=24`);
   *PSM-eq14* = the same model run with `sync_mode="brake"`, the paper's eq. 14 (the library
@@ -714,8 +717,9 @@ from demo 0's time stamps (`t[1] - t[0]`, 2.5–8 ms depending on the shape).
   segment the motion starts in keeps its demonstrated duration from any start point);
   *PSM-≤50* = `auto_tolerance=1e-3, max_segments=12`: at most 12 segments × 4 numbers (via-point
   position, velocity, demonstration time, slope k) = 48 numbers per dimension, no more than
-  DMP-50's 50 weights (+ start and goal) per dimension. The *Model size* table gives the
-  segment counts actually used.
+  DMP-50's 50 weights (+ start and goal) per dimension; *PSM-fine* = `auto_tolerance=1e-3,
+  max_segments=32`: the accuracy the segmentation reaches when the model may grow past DMP-50's
+  size. The *Model size* table gives the segment counts actually used.
 - *DMP*: `movement_primitives` 0.9.1 `DMP(n_dims=2, execution_time=demo duration, dt=dt,
   n_weights_per_dim=10 or 50)` with the library's default gains (α_y = 25, β_y = 6.25, no
   smooth scaling), `imitate(t, X)`, then `configure(start_y=x0)` and `open_loop()` with the
@@ -979,7 +983,7 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
     L.append(
         "Each cell: "
         + " / ".join(METHOD_LABELS[m] for m in (*PSM_VARIANTS, "dmp50"))
-        + "; `segs`: segments per dimension of PSM / PSM-≤50 (the other configurations run the "
+        + "; `segs`: segments per dimension of PSM / PSM-≤50 / PSM-fine (the other configurations run the "
         "PSM model)."
     )
     L.append("")
@@ -1002,7 +1006,7 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
             cells.append(" / ".join(_fmt(v) for v in vals))
         segs = " / ".join(
             "+".join(str(n) for n in s["methods"][m].get("segments_per_dim", []))
-            for m in ("psm", "psm_budget")
+            for m in ("psm", "psm_budget", "psm_fine")
             if m in s["methods"]
         )
         L.append(f"| {name} | {segs} | " + " | ".join(cells) + " |")

@@ -352,13 +352,14 @@ class PSMController:
             if not last and delta * dirs[j] <= 0.0:
                 j += 1  # progress: this via-point is already behind the state
                 continue
-            if abs(delta) <= pos_tol:
+            if abs(delta) <= pos_tol and abs(v) <= self._vel_tol:
                 if last:
-                    if abs(v) <= self._vel_tol:
-                        break
-                else:
-                    j += 1
-                    continue
+                    break
+                # At rest on a via-point: it is reached. (A state still moving within pos_tol of
+                # a via-point keeps following the segment law until it arrives, below: skipping
+                # ahead there would cut a slow approach short and run ahead of the demonstration.)
+                j += 1
+                continue
             direction = 1.0 if delta > 0.0 else -1.0
             v_along = v * direction
             if not last and v_n != 0.0 and v_along >= 0.0 and abs(v_n * v_n - v * v) > 4.0 * m * abs(delta):

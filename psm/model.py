@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from psm.controller import DimensionChain, PSMController, validate_sync
 from psm.errors import ModelFileError, ParameterError, ShapeError
-from psm.fitting import DimensionFit, fit_dimensions, smooth, validate_demonstration
+from psm.fitting import DimensionFit, fit_dimensions, fit_grid, smooth, validate_demonstration
 
 #: Identifies a saved model file; bump :data:`FORMAT_VERSION` on any incompatible change.
 FORMAT_NAME = "psm-model"
@@ -213,9 +213,10 @@ class PhaseSpaceModel:
         scale = float(np.max(np.ptp(demo.x, axis=0)))
         if scale == 0.0:
             scale = 1.0
-        min_samples = max(3, round(float(smoothing) / demo.dt))
+        grid = fit_grid(demo, float(smoothing))
+        min_samples = max(3, round(float(smoothing) / grid.dt))
         fits = fit_dimensions(
-            demo.t, demo.x, demo.v, demo.a, demo.dt, segments,
+            grid.t, grid.x, grid.v, grid.a, grid.dt, segments,
             hold_tolerance=hold_tolerance * scale,
             auto_tolerance=auto_tolerance * scale,
             max_segments=int(max_segments),
@@ -263,6 +264,7 @@ class PhaseSpaceModel:
             demo_duration=float(demo.t[-1]),
             demo_dt=demo.dt,
             parameters=params,
+            cut_times=[f.cut_indices * grid.dt for f in fits],
         )
 
     # ------------------------------------------------------------------ properties

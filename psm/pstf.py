@@ -232,7 +232,15 @@ def _travel_time(delta: float, c0: float, v_c: float, v_n: float, k: float, t0: 
     return 0.0 if dtheta > 1.5 * math.pi else dtheta / w
 
 
-def k_for_duration(x_c: float, v_c: float, x_n: float, v_n: float, duration: float, k_high: float) -> float:
+def k_for_duration(
+    x_c: float,
+    v_c: float,
+    x_n: float,
+    v_n: float,
+    duration: float,
+    k_high: float,
+    k_guess: float | None = None,
+) -> float:
     """The slope ``k`` [1/s²] whose PSTF goes from ``(x_c, v_c)`` to ``(x_n, v_n)`` in ``duration`` [s].
 
     The time to reach grows strictly with ``k`` (a larger ``k`` lowers the kinetic energy at every
@@ -240,7 +248,9 @@ def k_for_duration(x_c: float, v_c: float, x_n: float, v_n: float, duration: flo
     by the Illinois method (modified regula falsi) on ``(−4(π/duration)², k_high]`` (at
     ``−4(π/duration)²`` even a rest-to-rest segment takes only ``duration/2``). Returns ``k_high``
     when even that is faster than asked. Both velocities must point along ``x_n − x_c`` (or be
-    0) and ``k_high`` must be below ``k_max``.
+    0) and ``k_high`` must be below ``k_max``. ``k_guess`` [1/s²], optional, a slope believed
+    close to the answer (the fit passes the least-squares one): the bracket is then grown from
+    it, which saves most of the iterations; the answer is the same to the tolerance.
     """
     delta = x_n - x_c
     c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
@@ -249,14 +259,37 @@ def k_for_duration(x_c: float, v_c: float, x_n: float, v_n: float, duration: flo
     def excess_time(k: float) -> float:
         return _travel_time(delta, c0, v_c, v_n, k, t0) - duration
 
-    f_high = excess_time(k_high)
-    if f_high <= 0.0:
-        return k_high
-    k_low = min(-4.0 * (math.pi / duration) ** 2, k_high - 1.0)
-    f_low = excess_time(k_low)
-    while f_low >= 0.0:
-        k_low *= 4.0
+    tol = 1e-9 * duration
+    scale = (math.pi / duration) ** 2
+    f_high = math.nan  # not evaluated yet
+    k_low, f_low = -math.inf, -math.inf  # no lower bracket end yet
+    if k_guess is not None and k_guess < k_high and math.isfinite(k_guess):
+        # Secant steps from the guess (usually within a few per cent of the answer), keeping
+        # the tightest bracket seen; the Illinois method below finishes from that bracket.
+        k_a, f_a = k_guess, excess_time(k_guess)
+        k_b = k_guess - math.copysign(0.02 * max(abs(k_guess), scale), f_a)
+        for _ in range(6):
+            if abs(f_a) <= tol:
+                return k_a
+            if f_a > 0.0:
+                k_high, f_high = min((k_high, f_high), (k_a, f_a))
+            else:
+                k_low, f_low = max((k_low, f_low), (k_a, f_a))
+            if not k_low < k_b < k_high:
+                break
+            f_b = excess_time(k_b)
+            k_next = k_b - f_b * (k_b - k_a) / (f_b - f_a) if f_b != f_a else k_b
+            k_a, f_a, k_b = k_b, f_b, k_next
+    if math.isnan(f_high):
+        f_high = excess_time(k_high)
+        if f_high <= 0.0:
+            return k_high  # even the steepest allowed slope is faster than asked
+    if k_low == -math.inf:
+        k_low = min(-4.0 * scale, k_high - 1.0)
         f_low = excess_time(k_low)
+        while f_low >= 0.0:
+            k_low *= 4.0
+            f_low = excess_time(k_low)
     # Illinois (modified regula falsi) on the bracket: superlinear, never leaves the bracket.
     # f_high may be +inf (k_high at the bound): bisect until it is finite.
     side = 0
@@ -266,7 +299,7 @@ def k_for_duration(x_c: float, v_c: float, x_n: float, v_n: float, duration: flo
         else:
             k = (k_low * f_high - k_high * f_low) / (f_high - f_low)
         f = excess_time(k)
-        if abs(f) <= 1e-9 * duration or k_high - k_low <= 1e-12 * max(1.0, abs(k)):
+        if abs(f) <= tol or k_high - k_low <= 1e-12 * max(1.0, abs(k)):
             return k
         if f > 0.0:
             k_high, f_high = k, f

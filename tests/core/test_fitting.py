@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from psm import DemonstrationError, ParameterError, PhaseSpaceModel, pstf
-from psm.fitting import smooth, turning_points, validate_demonstration
+from psm.fitting import fit_grid, smooth, turning_points, validate_demonstration
 
 
 @pytest.mark.parametrize(
@@ -136,3 +136,50 @@ def test_a_barely_moving_dimension_is_a_hold_not_a_huge_k(reach_demo) -> None:
     r = model.rollout(dt=0.002)
     assert np.max(np.abs(r.a[:, 1])) < 1e-2
     assert r.done
+
+
+def _wave(rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """A 2-D, 3 s rest-to-rest motion with reversals, sampled at ``rate`` [Hz]: ``t (T,)``,
+    ``X (T, 2)`` [m]."""
+    t = np.arange(0.0, 3.0 + 0.5 / rate, 1.0 / rate)
+    tau = t / 3.0
+    s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)  # minimum-jerk progress: rest at both ends
+    X = np.stack([0.3 * np.sin(2.0 * np.pi * s) + 0.2 * s, 0.25 * (1 - np.cos(3.0 * np.pi * s))], axis=1)
+    return t, X
+
+
+def test_fit_grid_keeps_a_demonstration_that_is_not_dense() -> None:
+    demo = smooth(*validate_demonstration(*_wave(250.0)), 0.02)  # dt 4 ms > sigma / 8
+    assert fit_grid(demo, 0.02) is demo
+    assert fit_grid(demo, 0.0) is demo
+
+
+def test_fit_grid_is_a_coarser_uniform_grid_through_the_smoothed_demonstration() -> None:
+    demo = smooth(*validate_demonstration(*_wave(1000.0)), 0.02)
+    grid = fit_grid(demo, 0.02)
+    assert grid.dt <= 0.02 / 4 + 1e-12
+    assert grid.t.shape[0] < demo.t.shape[0] / 4
+    np.testing.assert_allclose(np.diff(grid.t), grid.dt, rtol=1e-9)
+    assert grid.t[0] == 0.0 and grid.t[-1] == pytest.approx(demo.t[-1], abs=1e-12)
+    for name in ("x", "v", "a"):
+        fine, coarse = getattr(demo, name), getattr(grid, name)
+        np.testing.assert_allclose(coarse[[0, -1]], fine[[0, -1]], rtol=0, atol=1e-12 * np.abs(fine).max())
+        at_grid = np.stack([np.interp(grid.t, demo.t, fine[:, d]) for d in range(2)], axis=1)
+        np.testing.assert_allclose(coarse, at_grid, rtol=0, atol=1e-9 * np.abs(fine).max())
+
+
+def test_a_dense_demonstration_learns_the_model_of_its_sparser_sampling() -> None:
+    """The fit grid makes 1 kHz and 250 Hz samplings of one motion learn nearly the same model
+    (and the model keeps the demonstration's own time base)."""
+    fine = PhaseSpaceModel.fit(*_wave(1000.0))
+    sparse = PhaseSpaceModel.fit(*_wave(250.0))
+    assert fine.to_dict()["demo_dt"] == pytest.approx(1e-3)
+    for c_fine, c_sparse in zip(fine.cut_times, sparse.cut_times, strict=True):
+        assert abs(len(c_fine) - len(c_sparse)) <= 2  # the greedy splits may land differently
+        assert c_fine[0] == 0.0 and c_fine[-1] == pytest.approx(3.0)
+    t, X = _wave(1000.0)
+    for model in (fine, sparse):
+        r = model.rollout(dt=0.002)
+        assert r.done and abs(r.t[-1] - 3.0) < 0.02
+        at_demo = np.stack([np.interp(t, r.t, r.x[:, d]) for d in range(2)], axis=1)
+        assert np.max(np.abs(at_demo - X)) < 5e-3  # m, on a 0.5 m motion (tolerance 2.5 mm)

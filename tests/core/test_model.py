@@ -254,3 +254,22 @@ def test_load_rejects_bad_files(tmp_path, model: PhaseSpaceModel) -> None:
     bad.write_text(json.dumps({"format": "something-else"}))
     with pytest.raises(ModelFileError, match="not a PSM model"):
         PhaseSpaceModel.load(bad)
+
+
+def test_a_slow_approach_to_a_via_point_keeps_the_demonstrated_timing() -> None:
+    """A small, slow rest-to-rest wiggle before the motion (a hand settling) ends at via-points
+    the state approaches at a crawl. The controller follows the segment law until it arrives
+    instead of skipping ahead once within ``position_tolerance``, which ran every later via-point
+    ~1/10 s early (regression: 26-80 ms early on the recorded grasp_spoon demonstration)."""
+    t = np.arange(0.0, 2.0 + 1e-9, 0.002)
+    dip = np.where(t < 0.3, -0.0015 * np.sin(np.pi * t / 0.3) ** 2, 0.0)
+    tau = np.clip((t - 0.3) / 1.5, 0.0, 1.0)
+    reach = 0.1 * tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+    model = PhaseSpaceModel.fit(t, dip + reach, position_tolerance=1e-2)  # 1 mm: the regime of the bug
+    cuts = model.cut_times[0]
+    assert cuts[1] == pytest.approx(0.15, abs=0.02)  # the wiggle's reversal is a via-point
+    r = model.rollout(dt=DT)
+    for j in range(1, len(cuts) - 1):
+        reached = r.t[np.argmax(r.segment[:, 0] >= j)]
+        assert reached == pytest.approx(cuts[j], abs=3 * DT), f"via-point {j}"
+    assert r.done and 1.8 < r.t[-1] < 2.05  # the motion ends at 1.8 s, then rests until 2 s

@@ -166,3 +166,24 @@ def test_k_for_duration_inverts_time_to_reach(seg: tuple, duration: float) -> No
         assert T == pytest.approx(duration, rel=1e-4)
     else:
         assert T <= duration * (1 + 1e-9)
+
+
+@settings(max_examples=150, deadline=None)
+@given(segments(), st.floats(0.05, 5.0, **finite), st.floats(-3.0, 3.0, **finite))
+def test_k_for_duration_from_a_guess_finds_the_same_slope(seg: tuple, duration: float, spread: float) -> None:
+    """A guess anywhere (near the answer, far below, far above, beyond k_high) changes the path
+    of the root-finding, not its answer."""
+    x_c, v_c, x_n, v_n, _ = seg
+    k_high = pstf.k_limit(v_c, v_n, x_n - x_c, 1e-3)
+    k_plain = pstf.k_for_duration(x_c, v_c, x_n, v_n, duration, k_high)
+    scale = max(abs(k_plain), (math.pi / duration) ** 2)
+    k_guess = k_plain + spread * scale * abs(spread)  # from 0 to ±9 scales away
+    k = pstf.k_for_duration(x_c, v_c, x_n, v_n, duration, k_high, k_guess=k_guess)
+    assert k <= k_high
+    T = pstf.time_to_reach(x_c, v_c, x_n, v_n, k)
+    if k_plain < k_high:
+        assert k < k_high
+        assert T == pytest.approx(duration, rel=1e-6)
+        assert k == pytest.approx(k_plain, rel=1e-4, abs=1e-6 * scale)
+    else:
+        assert k == k_high
