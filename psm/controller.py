@@ -360,6 +360,13 @@ class PSMController:
                 # ahead there would cut a slow approach short and run ahead of the demonstration.)
                 j += 1
                 continue
+            if delta == 0.0:
+                # Exactly on the goal and still moving (only the last via-point gets here: an
+                # earlier one at the state is behind it): no segment law is defined for Δ = 0.
+                # Brake to rest as eq. 10 does; the last segment's law returns any overshoot.
+                self._segment[d] = j
+                self._returning[d] = True
+                return -math.copysign(min(m, abs(v) / dt), v), abs(v) / m, MODE_WRONG_WAY
             direction = 1.0 if delta > 0.0 else -1.0
             v_along = v * direction
             if not last and v_n != 0.0 and v_along >= 0.0 and abs(v_n * v_n - v * v) > 4.0 * m * abs(delta):

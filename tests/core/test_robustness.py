@@ -51,3 +51,23 @@ def test_always_converges_with_bounded_acceleration(
     # the terminal spring's capture of the last tick.
     bound = 6.0 * max(model.parameters.wrong_way_accel)
     assert np.max(np.abs(r.a)) < bound
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    data=st.data(),
+    velocity=st.lists(st.floats(-1.0, 1.0, allow_nan=False), min_size=3, max_size=3),
+)
+def test_a_start_exactly_on_a_via_point_or_the_goal_is_handled(
+    model: PhaseSpaceModel, data: st.DataObject, velocity
+) -> None:
+    """Exact coincidences (Δ = 0 to the goal or to a via-point) at any velocity: no division by
+    zero, the goal is reached. (Regression: a start on the goal with v ≠ 0 raised ZeroDivisionError.)"""
+    start = np.empty(3)
+    for d, vp in enumerate(model.via_points):
+        j = data.draw(st.integers(0, len(vp.position) - 1), label=f"via-point of dim {d}")
+        start[d] = model.goal[d] + vp.position[j]  # j = last: exactly the goal
+    r = model.rollout(start, v0=np.array(velocity), dt=DT, max_duration=30.0)
+    assert r.done and np.all(np.isfinite(r.a))
+    np.testing.assert_allclose(r.x[-1], model.goal, atol=model.parameters.position_tolerance)
+    assert np.max(np.abs(r.a)) < 6.0 * max(model.parameters.wrong_way_accel)
