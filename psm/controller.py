@@ -407,9 +407,15 @@ class PSMController:
             # c₀ + k (x − m) peaks at an end, so |k Δ/2| <= a_max − |c₀| bounds it on the segment.
             # (A steep learned k would otherwise saturate, miss the via-point and, at the goal,
             # cycle around it.)
+            # The limit outranks the stability margin κ (a speed floor scaled to the demonstrated
+            # segment: far from it, e.g. after a large goal jump, it would demand a stiff spring
+            # whose law saturates and overshoots), never the bound ρ k_max itself. A state that
+            # cannot reach the via-point within the limit at all (|c₀| ≥ a_max) gets k = 0: the
+            # constant c₀, i.e. braking as hard as allowed, instead of a law that accelerates
+            # now and would need more than the limit to stop later.
             k_room = 2.0 * (a_max - abs(v_n * v_n - v_eff * v_eff) / (2.0 * abs(delta))) / abs(delta)
-            if k_room > 0.0:
-                k_eff = min(max(k_eff, -k_room), k_room, k_stable)
+            k_bound = k_stable + chain.kappa[j]  # ρ k_max: no margin
+            k_eff = min(max(k_eff, -k_room), k_room, k_bound) if k_room > 0.0 else min(0.0, k_bound)
             if wrong_way:
                 t_stop = -v_along / m
                 x_stop = x + 0.5 * v * t_stop

@@ -260,6 +260,24 @@ def turning_points(x: NDArray, tolerance: float) -> list[int]:
     return refined
 
 
+#: A direction reversal must exceed this many times the noise level of its dimension
+#: (:func:`noise_level`) to become a cut.
+REVERSAL_NOISE_FACTOR = 8.0
+
+
+def noise_level(x: NDArray) -> NDArray:
+    """Robust estimate of the white-noise standard deviation [unit] of each column of ``x (T, D)``
+    from its second differences, ``(D,)``: for white noise of deviation ``s`` they have deviation
+    ``√6 s``; a smooth motion contributes only ``x'' dt²``, and the median absolute deviation
+    ignores the few large values at sharp turns. On a smoothed demonstration it is the noise the
+    smoothing left (≈ 0 for clean data)."""
+    if x.shape[0] < 3:
+        return np.zeros(x.shape[1])
+    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    return mad / (0.6745 * math.sqrt(6.0))
+
+
 class _PrefixSums:
     """Prefix sums of the samples of ``D`` dimensions, for O(1) least squares over any index range.
 
@@ -580,10 +598,11 @@ def _auto_cuts(
     min_delta: float,
     max_segments: int,
 ) -> list[list[int]]:
-    """:func:`auto_cuts` of several dimensions (``cuts[g]`` of ``segmenters[g]``) at once.
+    """The ``"auto"`` cuts of several dimensions (``cuts[g]`` of ``segmenters[g]``) at once.
 
-    The cuts are those of :func:`auto_cuts` per dimension, in its greedy order (:class:`_Greedy`),
-    but the numerical work is done level by level of the splitting tree: each round splits every
+    Per dimension the cuts are those of greedy top-down splitting, the worst segment first, until
+    every segment is within ``tolerance`` or ``max_segments`` is reached (:class:`_Greedy`), but
+    the numerical work is done level by level of the splitting tree: each round splits every
     segment the greedy order needs or may need next, in all dimensions, as one vectorised split
     search and one vectorised deviation check of all new halves. Splits computed ahead are wasted
     only when ``max_segments`` stops the greedy order first.
@@ -700,9 +719,12 @@ def fit_dimensions(
     v_knot[0] = 0.0
     v_knot[-1] = 0.0
     fixed: dict[int, set[int]] = {}
+    # A reversal smaller than the noise left in a dimension is noise (a demonstration learned
+    # with little or no smoothing would otherwise get a cut at every wiggle).
+    reversal_tolerance = np.maximum(hold_tolerance, REVERSAL_NOISE_FACTOR * noise_level(x))
     for d in range(D):
         if not holds[d]:
-            turns = turning_points(x[:, d], hold_tolerance)
+            turns = turning_points(x[:, d], float(reversal_tolerance[d]))
             fixed[d] = {0, T - 1, *turns}
             v_knot[turns, d] = 0.0
     if not fixed:  # nothing moves (segments is not even looked at, as for one hold dimension)

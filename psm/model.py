@@ -49,8 +49,9 @@ class ModelParameters:
 
     * ``smoothing``: Gaussian sigma [s]; ``segments``: as given to :meth:`PhaseSpaceModel.fit`;
     * ``auto_tolerance``: position error budget per segment in auto mode and ``hold_tolerance``:
-      motion below which a dimension is a hold and a reversal is noise, both relative to the
-      demonstration's largest range (:func:`psm.fitting.auto_cuts`);
+      motion below which a dimension is a hold and a reversal is noise (so is one below 8× the
+      noise the smoothing left, :func:`psm.fitting.noise_level`), both relative to the
+      demonstration's largest range (:func:`psm.fitting.fit_dimensions`);
     * ``max_segments``: per dimension in auto mode; ``min_speed_ratio``: μ of the stability
       margin (:func:`psm.pstf.k_limit`);
     * ``wrong_way_accel (D,)``: ``m`` of eq. 10 [unit/s²]; ``sync_gain``: ``T`` of eq. 14 [1/s²];
@@ -181,8 +182,9 @@ class PhaseSpaceModel:
         direction reversals are always cuts. ``smoothing``: Gaussian sigma [s].
         ``hold_tolerance``, ``position_tolerance`` and ``velocity_tolerance`` are relative to the
         demonstration's largest range (``position_tolerance=1e-4`` of a 0.5 m reach is 50 µm).
-        ``wrong_way_accel`` (``m`` of eq. 10) defaults per dimension to the largest demonstrated
-        |acceleration|; ``max_acceleration`` (saturation of the segment law, per dimension) to 3 ``m``.
+        ``wrong_way_accel`` (``m`` of eq. 10, per dimension) defaults to the largest |acceleration|
+        demonstrated in any dimension; ``max_acceleration`` (saturation of the segment law, per
+        dimension) to 3 ``m``.
         ``k_fit``: ``"duration"`` (default) gives each segment the ``k`` whose
         closed-form duration equals the demonstrated one; ``"least_squares"`` is the paper's
         least squares in the position–acceleration plane (see docs/psm.md for the comparison).
@@ -211,7 +213,9 @@ class PhaseSpaceModel:
         demo = smooth(t_arr, X_arr, float(smoothing))
         D = X_arr.shape[1]
         scale = float(np.max(np.ptp(demo.x, axis=0)))
-        if scale == 0.0:
+        if scale <= 1e-12 * float(np.max(np.abs(demo.x))):
+            # Nothing moves (the smoothing's rounding is not a motion): every dimension is a hold
+            # and the tolerances are taken in the demonstration's units.
             scale = 1.0
         grid = fit_grid(demo, float(smoothing))
         min_samples = max(3, round(float(smoothing) / grid.dt))
@@ -225,8 +229,14 @@ class PhaseSpaceModel:
             k_fit=k_fit,
         )
         if wrong_way_accel is None:
-            amax = np.max(np.abs(demo.a), axis=0)
-            m = np.where(amax > 0, amax, float(np.max(amax)) or 1.0)
+            # Isotropic: the largest |acceleration| demonstrated in any dimension. A per-dimension
+            # value would make a dimension that barely moves in the demonstration (a constant
+            # height, say) brake at almost nothing when pushed: it would drift for minutes.
+            # Floor: 4 range / T², the least peak acceleration that covers the range in the
+            # demonstrated time (never binding for a real motion; it gives a demonstration that
+            # does not move at all a braking acceleration other than the smoothing's rounding).
+            floor = 4.0 * scale / max(float(demo.t[-1]), demo.dt) ** 2
+            m = np.full(D, max(float(np.max(np.abs(demo.a))), floor))
         else:
             m = np.broadcast_to(np.asarray(wrong_way_accel, dtype=float), (D,)).copy()
             if not np.all(np.isfinite(m) & (m > 0)):

@@ -273,3 +273,18 @@ def test_a_slow_approach_to_a_via_point_keeps_the_demonstrated_timing() -> None:
         reached = r.t[np.argmax(r.segment[:, 0] >= j)]
         assert reached == pytest.approx(cuts[j], abs=3 * DT), f"via-point {j}"
     assert r.done and 1.8 < r.t[-1] < 2.05  # the motion ends at 1.8 s, then rests until 2 s
+
+
+@pytest.mark.parametrize("smoothing", [0.0, 0.05])
+def test_a_demonstration_that_does_not_move_is_a_hold(smoothing: float) -> None:
+    """A constant demonstration (the smoothing's float rounding is not a motion: it used to become
+    ~100 segments of 1e-16 that never finished) is a hold in every dimension."""
+    t = np.arange(0.0, 2.0, DT)
+    X = np.tile([0.3, -0.2], (t.size, 1))
+    model = PhaseSpaceModel.fit(t, X, smoothing=smoothing)
+    assert model.hold_dimensions == [0, 1]
+    r = model.rollout(dt=DT)
+    assert r.done and r.t[-1] < 0.1
+    r = model.rollout(X[0] + [0.01, -0.02], dt=DT, max_duration=10.0)  # displaced: comes back
+    assert r.done
+    np.testing.assert_allclose(r.x[-1], X[0], atol=model.parameters.position_tolerance)
