@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from psm.errors import ParameterError, ShapeError
-from psm.pstf import k_for_duration, k_limit, time_to_reach
+from psm.pstf import K_MAX_FRACTION, k_for_duration, k_limit, stable_segment_time, time_to_reach
 
 #: Controller modes of one dimension (reported by :attr:`PSMController.modes`).
 MODE_SEGMENT = "segment"
@@ -399,7 +399,11 @@ class PSMController:
             # Clamp k below the stability bound of the measured state. The clamp only tightens
             # within a segment: re-solving from each new state would otherwise ride the bound
             # and creep (the bound rises as the segment progresses).
-            k_stable = k_limit(v_eff, v_n, delta, chain.kappa[j])
+            # (k_limit written out: this is the hot path; Δ ≠ 0 here.)
+            speed_ratio = (abs(v_eff) + abs(v_n)) / delta
+            k_max = speed_ratio * speed_ratio
+            k_bound = K_MAX_FRACTION * k_max  # ρ k_max: the bound without the speed margin κ
+            k_stable = k_bound - chain.kappa[j]
             k_eff = min(k_learned, k_stable, self._k_cap[d])
             if k_eff < k_learned:
                 self._k_cap[d] = k_eff
@@ -413,15 +417,21 @@ class PSMController:
             # cannot reach the via-point within the limit at all (|c₀| ≥ a_max) gets k = 0: the
             # constant c₀, i.e. braking as hard as allowed, instead of a law that accelerates
             # now and would need more than the limit to stop later.
-            k_room = 2.0 * (a_max - abs(v_n * v_n - v_eff * v_eff) / (2.0 * abs(delta))) / abs(delta)
-            k_bound = k_stable + chain.kappa[j]  # ρ k_max: no margin
+            c0 = (v_n * v_n - v_eff * v_eff) / (2.0 * delta)  # the law's mid-point acceleration
+            k_room = 2.0 * (a_max - abs(c0)) / abs(delta)
             k_eff = min(max(k_eff, -k_room), k_room, k_bound) if k_room > 0.0 else min(0.0, k_bound)
             if wrong_way:
                 t_stop = -v_along / m
                 x_stop = x + 0.5 * v * t_stop
                 t_seg = t_stop + time_to_reach(x_stop, 0.0, x_n, v_n, k_eff)
             else:
-                t_seg = time_to_reach(x, v_eff, x_n, v_n, k_eff)
+                # Stable by construction (v_eff along Δ, k_eff ≤ ρ k_max) unless k_max = 0 (rest
+                # to rest: k_eff may sit on the bound) or v_n points against Δ: then the checked
+                # closed form decides (it returns inf for an unstable segment).
+                if k_eff < k_max and v_n * delta >= 0.0:
+                    t_seg = stable_segment_time(delta, c0, v_eff, v_n, k_eff)
+                else:
+                    t_seg = time_to_reach(x, v_eff, x_n, v_n, k_eff)
             if t_seg <= dt and not wrong_way:
                 if last:
                     break  # terminal capture (or overshoot), decided below
@@ -454,7 +464,7 @@ class PSMController:
         # Eq. 7 with the corrected eq. 5, solved from the measured state. The command is the
         # constant acceleration that gives the PSTF's exact velocity one tick later:
         # v(dt) = v C + a_c dt S with z = k dt² (see psm.pstf.propagate).
-        a_c = (v_n * v_n - v_eff * v_eff) / (2.0 * delta) - 0.5 * k_eff * delta
+        a_c = c0 - 0.5 * k_eff * delta
         z = k_eff * dt * dt
         if abs(z) < 1e-5:
             c_m1 = z * (0.5 + z / 24.0)

@@ -211,6 +211,15 @@ def time_to_reach(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> f
     return _travel_time(delta, (v_n * v_n - v_c * v_c) / (2.0 * delta), v_c, v_n, k, t0)
 
 
+def stable_segment_time(delta: float, c0: float, v_c: float, v_n: float, k: float) -> float:
+    """:func:`time_to_reach` [s] of a segment already known to be stable, without the checks (the
+    controller's hot path): ``delta = x_n − x_c ≠ 0``, both velocities along it or zero,
+    ``k < k_max``; ``c0 = (v_n² − v_c²)/(2Δ)`` [unit/s²] its mid-point acceleration."""
+    speed_sum = abs(v_c) + abs(v_n)
+    t0 = 2.0 * abs(delta) / speed_sum if speed_sum > 0.0 else math.inf
+    return _travel_time(delta, c0, v_c, v_n, k, t0)
+
+
 def _travel_time(delta: float, c0: float, v_c: float, v_n: float, k: float, t0: float) -> float:
     """The closed-form time of a segment already known to be stable (no checks: hot loops).
 
