@@ -157,6 +157,16 @@ def smooth(t: NDArray, X: NDArray, sigma: float) -> SmoothedDemo:
 FIT_GRID_PER_SIGMA = 4.0
 
 
+def _interpolate_rows(q: NDArray, low: NDArray, w: NDArray) -> NDArray:
+    """``q[low] (1 − w) + q[low + 1] w`` for ``q (T, D)``, ``low, w (n,)``, worked along memory
+    order: the smoothed arrays are usually column-major (``(D, T)`` transposed), where gathering
+    rows is several times slower than gathering within each column."""
+    if q.strides[0] < q.strides[1]:  # column-major (or a slice of such an array)
+        qt = q.T
+        return (qt.take(low, axis=1) * (1.0 - w) + qt.take(low + 1, axis=1) * w).T
+    return q.take(low, axis=0) * (1.0 - w)[:, None] + q.take(low + 1, axis=0) * w[:, None]
+
+
 def fit_grid(demo: SmoothedDemo, sigma: float) -> SmoothedDemo:
     """The smoothed demonstration on the grid the segments are fitted on: ``demo`` itself, or,
     when its samples are more than twice as dense as ``sigma / 4`` [s], a uniform grid of spacing
@@ -179,18 +189,12 @@ def fit_grid(demo: SmoothedDemo, sigma: float) -> SmoothedDemo:
     n = math.ceil((T - 1) / factor)  # intervals of the new grid
     position = np.arange(n + 1) * ((T - 1) / n)  # fractional sample index of each grid point
     low = np.minimum(position.astype(np.intp), T - 2)
-    w = (position - low)[:, None]
-    stacked = np.concatenate([demo.x, demo.v, demo.a], axis=1)  # (T, 3D): one gather for all
-    grid = stacked.take(low, axis=0) * (1.0 - w) + stacked.take(low + 1, axis=0) * w
-    D = demo.x.shape[1]
+    w = position - low
+    # (Interpolated per array: a stacked (T, 3D) copy would be a large allocation, which costs
+    # page faults on every fit.)
+    x, v, a = (_interpolate_rows(q, low, w) for q in (demo.x, demo.v, demo.a))
     spacing = float(demo.t[-1]) / n
-    return SmoothedDemo(
-        t=np.arange(n + 1) * spacing,
-        x=grid[:, :D],
-        v=grid[:, D : 2 * D],
-        a=grid[:, 2 * D :],
-        dt=spacing,
-    )
+    return SmoothedDemo(t=np.arange(n + 1) * spacing, x=x, v=v, a=a, dt=spacing)
 
 
 def _gaussian_smooth(X: NDArray, sigma_samples: float) -> NDArray:
