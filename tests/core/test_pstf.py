@@ -187,3 +187,12 @@ def test_k_for_duration_from_a_guess_finds_the_same_slope(seg: tuple, duration: 
         assert k == pytest.approx(k_plain, rel=1e-4, abs=1e-6 * scale)
     else:
         assert k == k_high
+
+
+@settings(max_examples=200, deadline=None)
+@given(segments())
+def test_stable_segment_time_is_time_to_reach_without_the_checks(seg: tuple) -> None:
+    x_c, v_c, x_n, v_n, k = seg
+    delta = x_n - x_c
+    c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
+    assert pstf.stable_segment_time(delta, c0, v_c, v_n, k) == pstf.time_to_reach(x_c, v_c, x_n, v_n, k)
