@@ -4,12 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-
-def minimum_jerk(t: np.ndarray, duration: float) -> np.ndarray:
-    """Minimum-jerk phase s(t) ∈ [0, 1] over ``duration`` [s]."""
-    s = np.clip(t / duration, 0.0, 1.0)
-    return 10 * s**3 - 15 * s**4 + 6 * s**5
+from trajectories import minimum_jerk
 
 
 @pytest.fixture

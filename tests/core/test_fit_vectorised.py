@@ -13,6 +13,7 @@ import math
 import numpy as np
 import pytest
 from scipy.signal import fftconvolve
+from trajectories import minimum_jerk
 
 from psm import PhaseSpaceModel, fitting, pstf
 
@@ -69,8 +70,7 @@ def _demo(T: int = 600, D: int = 2, seed: int = 3) -> fitting.SmoothedDemo:
     phase) and 0.2 mm noise, ``T`` samples at 2 ms, ``D`` dimensions."""
     rng = np.random.default_rng(seed)
     t = np.arange(T) * 0.002
-    tau = t / t[-1]
-    s = 10 * tau**3 - 15 * tau**4 + 6 * tau**5  # minimum-jerk phase
+    s = minimum_jerk(t, t[-1])
     X = np.stack(
         [0.1 * np.sin(2 * np.pi * rng.uniform(0.5, 1.5) * s + rng.uniform(0, 6)) for _ in range(D)], axis=1
     )

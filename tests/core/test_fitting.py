@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from trajectories import minimum_jerk
 
 from psm import DemonstrationError, ParameterError, PhaseSpaceModel, pstf
 from psm.fitting import fit_grid, smooth, turning_points, validate_demonstration
@@ -142,8 +143,7 @@ def _wave(rate: float) -> tuple[np.ndarray, np.ndarray]:
     """A 2-D, 3 s rest-to-rest motion with reversals, sampled at ``rate`` [Hz]: ``t (T,)``,
     ``X (T, 2)`` [m]."""
     t = np.arange(0.0, 3.0 + 0.5 / rate, 1.0 / rate)
-    tau = t / 3.0
-    s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)  # minimum-jerk progress: rest at both ends
+    s = minimum_jerk(t, 3.0)
     X = np.stack([0.3 * np.sin(2.0 * np.pi * s) + 0.2 * s, 0.25 * (1 - np.cos(3.0 * np.pi * s))], axis=1)
     return t, X
 

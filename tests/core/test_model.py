@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from trajectories import minimum_jerk
 
 from psm import ModelFileError, ParameterError, PhaseSpaceModel, ShapeError
 from psm.controller import MODE_STOP, MODE_WRONG_WAY
@@ -263,8 +264,7 @@ def test_a_slow_approach_to_a_via_point_keeps_the_demonstrated_timing() -> None:
     ~1/10 s early (regression: 26-80 ms early on the recorded grasp_spoon demonstration)."""
     t = np.arange(0.0, 2.0 + 1e-9, 0.002)
     dip = np.where(t < 0.3, -0.0015 * np.sin(np.pi * t / 0.3) ** 2, 0.0)
-    tau = np.clip((t - 0.3) / 1.5, 0.0, 1.0)
-    reach = 0.1 * tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+    reach = 0.1 * minimum_jerk(t - 0.3, 1.5)
     model = PhaseSpaceModel.fit(t, dip + reach, position_tolerance=1e-2)  # 1 mm: the regime of the bug
     cuts = model.cut_times[0]
     assert cuts[1] == pytest.approx(0.15, abs=0.02)  # the wiggle's reversal is a via-point

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from trajectories import minimum_jerk
 
 from psm import PhaseSpaceModel
 
@@ -15,8 +16,7 @@ DT = 0.002
 @pytest.fixture(scope="module")
 def model() -> PhaseSpaceModel:
     t = np.arange(0.0, 2.0 + 1e-9, DT)
-    u = t / 2.0
-    s = 10 * u**3 - 15 * u**4 + 6 * u**5  # minimum-jerk phase
+    s = minimum_jerk(t, 2.0)
     X = np.stack([0.4 * s, 0.2 * np.sin(np.pi * s), 0.1 * np.sin(2 * np.pi * s)], axis=1)
     return PhaseSpaceModel.fit(t, X)
 
@@ -77,8 +77,7 @@ def _reach(rate: float, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray
     """A 3-D, 3 s rest-to-rest reach sampled at ``rate`` [Hz] with white noise of ``noise`` [m]:
     x and y move 0.4 / 0.25 m (y reverses once), z is constant (a table height)."""
     t = np.arange(0.0, 3.0, 1.0 / rate)
-    u = t / t[-1]
-    s = u**3 * (10.0 - 15.0 * u + 6.0 * u * u)
+    s = minimum_jerk(t, t[-1])
     X = np.stack([0.4 * s, 0.25 * np.sin(np.pi * s) + 0.1 * s, np.full_like(s, 0.3)], axis=1)
     return t, X + np.random.default_rng(seed).normal(0.0, noise, X.shape)
 
@@ -125,8 +124,7 @@ def test_random_demonstrations_converge_from_other_starts_and_goals(seed: int, s
     rate = float(rng.choice([100.0, 250.0, 500.0, 1000.0, 2000.0]))
     t = np.arange(0.0, float(rng.uniform(0.5, 6.0)), 1.0 / rate)
     assume(t.size >= 10)
-    u = t / t[-1]
-    s = u**3 * (10.0 - 15.0 * u + 6.0 * u * u)
+    s = minimum_jerk(t, t[-1])
     X = np.empty((t.size, D))
     for d in range(D):
         amplitude = rng.uniform(0.0, 0.5) * rng.choice([1.0, 0.0, 1e-5])

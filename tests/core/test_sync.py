@@ -4,16 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from trajectories import minimum_jerk
 
 from psm import ParameterError, PhaseSpaceModel
 
 DT = 0.002
-
-
-def minimum_jerk(t: np.ndarray, duration: float) -> np.ndarray:
-    """Minimum-jerk phase s(t) ∈ [0, 1] over ``duration`` [s] (0 before, 1 after)."""
-    s = np.clip(t / duration, 0.0, 1.0)
-    return 10 * s**3 - 15 * s**4 + 6 * s**5
 
 
 def sequential_demo(noise: float = 0.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
