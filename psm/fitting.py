@@ -44,6 +44,9 @@ from psm.pstf import (
     time_to_reach,
 )
 
+#: How a segment's ``k`` may be chosen (``k_fit``): the demonstrated duration, or the paper's
+#: least squares in the position–acceleration plane.
+K_FIT_MODES = ("duration", "least_squares")
 #: Fewest samples a demonstration may have.
 MIN_SAMPLES = 8
 #: Time stamps whose spacing varies less than this (relative) are used as they are; otherwise the
@@ -704,7 +707,7 @@ def fit_dimensions(
     max_segments: int,
     min_speed_ratio: float,
     min_segment_samples: int,
-    k_fit: str = "least_squares",
+    k_fit: str,
 ) -> list[DimensionFit]:
     """Learn the PSTF chain of every dimension from smoothed samples ``x, v, a (T, D)``.
 
@@ -713,6 +716,7 @@ def fit_dimensions(
     ``segments``: ``"auto"``, a number of segments uniform in time (the paper's choice; direction
     reversals are added as cuts), or a sequence of cut times [s] from the demonstration's start.
     A dimension whose range is below ``hold_tolerance`` [unit] becomes one rest-to-rest hold.
+    ``k_fit``: one of :data:`K_FIT_MODES`.
     """
     T, D = x.shape
     duration = float(demo_t[-1])

@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from psm.controller import DimensionChain, PSMController, validate_sync
 from psm.errors import ModelFileError, ParameterError, ShapeError
-from psm.fitting import DimensionFit, fit_dimensions, fit_grid, smooth, validate_demonstration
+from psm.fitting import K_FIT_MODES, DimensionFit, fit_dimensions, fit_grid, smooth, validate_demonstration
 
 #: Identifies a saved model file; bump :data:`FORMAT_VERSION` on any incompatible change.
 FORMAT_NAME = "psm-model"
@@ -206,8 +206,8 @@ class PhaseSpaceModel:
         if not (math.isfinite(sync_gain) and sync_gain >= 0.0):
             raise ParameterError(f"sync_gain must be a finite number >= 0, got {sync_gain}")
         validate_sync(sync_mode, sync_time)
-        if k_fit not in ("least_squares", "duration"):
-            raise ParameterError(f"k_fit must be 'least_squares' or 'duration', got {k_fit!r}")
+        if k_fit not in K_FIT_MODES:
+            raise ParameterError(f"k_fit must be one of {K_FIT_MODES}, got {k_fit!r}")
         if int(max_segments) < 1:
             raise ParameterError(f"max_segments must be >= 1, got {max_segments}")
         demo = smooth(t_arr, X_arr, float(smoothing))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import inspect
 import json
 from pathlib import Path
 
@@ -21,7 +22,7 @@ import numpy as np
 from psm import PhaseSpaceModel, Rollout
 from psm.controller import SYNC_MODES
 from psm.errors import DemonstrationError
-from psm.fitting import smooth, validate_demonstration
+from psm.fitting import K_FIT_MODES, smooth, validate_demonstration
 
 
 def load_demonstration(
@@ -131,15 +132,16 @@ def cmd_learn(args: argparse.Namespace) -> int:
     options = {  # only what was given: the model's own defaults stay the single source
         name: value
         for name, value in (
+            ("segments", args.segments),
+            ("smoothing", args.smoothing),
+            ("k_fit", args.k_fit),
             ("auto_tolerance", args.auto_tolerance),
             ("sync_mode", args.sync),
             ("start_shift", args.start_shift or None),
         )
         if value is not None
     }
-    model = PhaseSpaceModel.fit(
-        t, X, segments=args.segments, smoothing=args.smoothing, k_fit=args.k_fit, **options
-    )
+    model = PhaseSpaceModel.fit(t, X, **options)
     out = Path(args.output)
     out.parent.mkdir(parents=True, exist_ok=True)
     model.save(out)
@@ -240,17 +242,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("learn", help="learn a PSM from one demonstration (CSV, NPZ, MCAP)")
     p.add_argument("demo", help="demonstration file (.csv, .npz or .mcap)")
     p.add_argument("-o", "--output", default="model.json", help="model file to write (JSON)")
-    p.add_argument("--segments", type=_segments_arg, default="auto",
-                   help="'auto', a number of segments, or comma-separated cut times [s]")
-    p.add_argument("--smoothing", type=float, default=0.02, help="Gaussian smoothing sigma [s]")
-    p.add_argument("--k-fit", choices=("duration", "least_squares"), default="duration",
-                   help="how each segment's k is chosen")
+    default = {name: par.default for name, par in inspect.signature(PhaseSpaceModel.fit).parameters.items()}
+    p.add_argument("--segments", type=_segments_arg,
+                   help="'auto', a number of segments, or comma-separated cut times [s] "
+                   f"(default {default['segments']})")
+    p.add_argument("--smoothing", type=float,
+                   help=f"Gaussian smoothing sigma [s] (default {default['smoothing']})")
+    p.add_argument("--k-fit", choices=K_FIT_MODES,
+                   help=f"how each segment's k is chosen (default {default['k_fit']})")
     p.add_argument("--auto-tolerance", type=float,
                    help="'auto' segmentation: position budget per segment, share of the range "
-                   "(default 0.005)")
+                   f"(default {default['auto_tolerance']})")
     p.add_argument("--sync", choices=SYNC_MODES,
-                   help="synchronisation of the dimensions: 'scale' (time scaling, default) or "
-                   "'brake' (the paper's eq. 14)")
+                   help="synchronisation of the dimensions: 'scale' (time scaling) or 'brake' "
+                   f"(the paper's eq. 14) (default {default['sync_mode']})")
     p.add_argument("--start-shift", action="store_true",
                    help="spread a start offset over the motion (fading to 0 at the goal)")
     p.add_argument("--columns", nargs="+", help="CSV columns to learn (default: all but t)")
