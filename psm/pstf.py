@@ -206,9 +206,7 @@ def time_to_reach(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> f
         return 0.0
     if not is_stable(v_c, v_n, delta, k):
         return math.inf
-    speed_sum = abs(v_c) + abs(v_n)
-    t0 = 2.0 * abs(delta) / speed_sum if speed_sum > 0.0 else math.inf
-    return _travel_time(delta, (v_n * v_n - v_c * v_c) / (2.0 * delta), v_c, v_n, k, t0)
+    return stable_segment_time(delta, (v_n * v_n - v_c * v_c) / (2.0 * delta), v_c, v_n, k)
 
 
 def stable_segment_time(delta: float, c0: float, v_c: float, v_n: float, k: float) -> float:
