@@ -15,6 +15,10 @@ Metrics
 - :func:`discrete_frechet_distance` -- Eiter--Mannila discrete Fréchet distance: the worst
   matched pair under the best monotone coupling (a max, not an average).
 - :func:`final_point_error` -- distance between the last samples.
+- :func:`resample_by_arc_length` -- a curve's polyline resampled at points equally spaced
+  along its length: DTW and Fréchet of two curves resampled this way compare their shapes
+  without depending on where along the curve each one happened to be sampled (a copy of a
+  curve sampled half a sample later scores ~0 instead of up to half the sample spacing).
 
 DTW and Fréchet are computed with the classic O(N·M) dynamic programme, vectorised along
 anti-diagonals (all cells with the same ``i + j`` depend only on the two previous
@@ -34,6 +38,7 @@ __all__ = [
     "dtw_distance",
     "final_point_error",
     "pairwise_distances",
+    "resample_by_arc_length",
     "rmse_over_time",
     "trajectory_metrics",
 ]
@@ -196,9 +201,7 @@ def discrete_frechet_distance(a: ArrayLike, b: ArrayLike) -> float:
     return float(_antidiagonal_dp(C, np.maximum, -np.inf)[N + M - 2, N])
 
 
-def rmse_over_time(
-    t_model: ArrayLike, x_model: ArrayLike, t_ref: ArrayLike, x_ref: ArrayLike
-) -> float:
+def rmse_over_time(t_model: ArrayLike, x_model: ArrayLike, t_ref: ArrayLike, x_ref: ArrayLike) -> float:
     """Root-mean-square position error over time, on the reference's time stamps.
 
     Computation: both time axes are taken relative to their first sample (each trajectory
@@ -250,6 +253,36 @@ def final_point_error(x_model: ArrayLike, x_ref: ArrayLike) -> float:
     Xr = _as_2d(x_ref, "x_ref")
     _check_same_dim(Xm, Xr)
     return float(np.linalg.norm(Xm[-1] - Xr[-1]))
+
+
+def resample_by_arc_length(x: ArrayLike, n: int) -> FloatArray:
+    """The polyline through the samples ``x``, resampled at ``n`` points equally spaced along it.
+
+    Computation: cumulative chord length ``s_k = sum_{i<k} ||x_{i+1} - x_i||_2``; the result is
+    the polyline evaluated (linear interpolation per coordinate) at ``s = L·j/(n−1)``,
+    ``j = 0..n−1``, ``L = s_{N−1}``. The first and last points are the first and last samples;
+    repeated samples (a curve at rest) add no length and are skipped, so the result depends on
+    the curve's shape only, not on its timing. A curve of zero length gives ``n`` copies of its
+    first sample.
+
+    Args:
+        x: (N, D) or (N,) positions.
+        n: number of output points, >= 2.
+
+    Returns:
+        (n, D) positions, same units as ``x``.
+    """
+    X = _as_2d(x, "x")
+    if n < 2:
+        raise ValueError(f"n must be >= 2, got {n}")
+    step = np.linalg.norm(np.diff(X, axis=0), axis=1)
+    keep = np.concatenate([[True], step > 0.0])  # np.interp needs strictly increasing s
+    s = np.concatenate([[0.0], np.cumsum(step[step > 0.0])])
+    if s[-1] == 0.0:
+        return np.repeat(X[:1], n, axis=0)
+    u = np.linspace(0.0, s[-1], n)
+    kept = X[keep]
+    return np.column_stack([np.interp(u, s, kept[:, d]) for d in range(X.shape[1])])
 
 
 def trajectory_metrics(

@@ -41,6 +41,19 @@ def test_quick_run_on_two_shapes_writes_numbers_for_both_methods(tmp_path: Path)
                         run.get("error"),
                     )
                     assert value >= 0.0
+    for name, shape in report["shapes"].items():
+        reproduction = {m: shape["methods"][m]["runs"][0] for m in METHODS}
+        for method, run in reproduction.items():
+            # the path metrics on arc-length-resampled curves: finite, and DTW <= Fréchet
+            assert 0.0 <= run["dtw_arc"] <= run["frechet_arc"] < 5.0, (name, method)
+        copy = shape["half_sample_copy"]
+        # the control is the demo itself: the raw-sample metrics see its sampling phase,
+        # the arc-length ones (almost) do not
+        assert copy["dtw_arc"] < 0.05 * copy["dtw"], (name, copy)
+        assert copy["frechet_arc"] < 0.05 * copy["frechet"], (name, copy)
+    check = report["aggregate"]["sampling_check"]
+    assert check["dtw_arc"]["shapes_compared"] == 2
+    assert 0 <= check["frechet_arc"]["le_dmp50"]["psm"] <= 2
     agg = report["aggregate"]["reproduction"]["rmse"]
     for method in METHODS:
         assert agg[method]["n"] == 2
@@ -54,6 +67,7 @@ def test_quick_run_on_two_shapes_writes_numbers_for_both_methods(tmp_path: Path)
 
     md = (tmp_path / "learner.md").read_text(encoding="utf-8")
     assert "## Method" in md
+    assert "| Fréchet, arc-length (median) |" in md
     per_shape = md[md.index("## Per shape") : md.index("## Largest PSM")]
     for name in ("Angle", "Line"):
         # one row per condition: "PSM / DMP-10 / DMP-50" triples of numbers for each metric

@@ -15,6 +15,7 @@ from benchmarks.metrics import (
     dtw_distance,
     final_point_error,
     pairwise_distances,
+    resample_by_arc_length,
     rmse_over_time,
     trajectory_metrics,
 )
@@ -216,3 +217,45 @@ def test_invalid_input_raises() -> None:
         discrete_frechet_distance(np.zeros((3, 2)), np.zeros((3, 3)))
     with pytest.raises(ValueError, match="increasing"):
         rmse_over_time([0.0, 0.0], [1.0, 2.0], [0.0, 1.0], [1.0, 2.0])
+
+
+# ---------------------------------------------------------------- arc-length resampling
+
+
+def test_arc_length_resampling_of_a_line_is_evenly_spaced_with_exact_ends() -> None:
+    # samples bunched at the start (a motion accelerating from rest), 3-4-5 direction
+    s = np.linspace(0.0, 1.0, 40) ** 3
+    x = np.column_stack([3.0 * s, 4.0 * s])
+    r = resample_by_arc_length(x, 11)
+    assert r.shape == (11, 2)
+    np.testing.assert_allclose(r, np.column_stack([np.linspace(0, 3, 11), np.linspace(0, 4, 11)]), atol=1e-12)
+    np.testing.assert_array_equal(r[0], x[0])
+    np.testing.assert_array_equal(r[-1], x[-1])
+
+
+def test_arc_length_resampling_skips_repeated_samples_and_keeps_the_corner() -> None:
+    corner = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 0.0], [2.0, 0.0], [2.0, 2.0]])
+    r = resample_by_arc_length(corner, 5)
+    np.testing.assert_allclose(r, [[0, 0], [1, 0], [2, 0], [2, 1], [2, 2]], atol=1e-12)
+    np.testing.assert_array_equal(resample_by_arc_length(np.array([[1.0, 2.0], [1.0, 2.0]]), 3), [[1, 2]] * 3)
+    with pytest.raises(ValueError, match="n must be"):
+        resample_by_arc_length(corner, 1)
+
+
+def test_arc_length_resampling_removes_the_sampling_phase_from_dtw_and_frechet() -> None:
+    """The same curve sampled half a sample later: the discrete metrics see up to half the sample
+    spacing; after resampling both curves along their length only the chords' corner cutting
+    (spacing² × curvature / 8) remains."""
+    t = np.linspace(0.0, 1.0, 201)
+    phase = np.pi * t**2  # non-uniform speed along a half circle of radius 50
+    a = 50.0 * np.column_stack([np.cos(phase), np.sin(phase)])
+    t_half = np.concatenate([[0.0], 0.5 * (t[1:] + t[:-1]), [1.0]])
+    b = np.column_stack([np.interp(t_half, t, a[:, d]) for d in range(2)])
+    spacing = float(np.max(np.linalg.norm(np.diff(a, axis=0), axis=1)))
+    assert dtw_distance(a, b) > 0.1 * spacing
+    assert discrete_frechet_distance(a, b) > 0.4 * spacing
+    ra, rb = resample_by_arc_length(a, 200), resample_by_arc_length(b, 200)
+    corner_cut = spacing**2 / (8.0 * 50.0)
+    assert dtw_distance(ra, rb) < 4.0 * corner_cut
+    assert discrete_frechet_distance(ra, rb) < 4.0 * corner_cut
+    assert 4.0 * corner_cut < 0.05 * spacing  # so the check above is a strong one
