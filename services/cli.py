@@ -58,8 +58,15 @@ def dispatch(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None)
     except KeyboardInterrupt:
         return 130
     except (PSMError, CLIError, OSError, ValueError) as exc:
-        print(f"{parser.prog} {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{parser.prog} {args.command}: error: {_error_text(exc)}", file=sys.stderr)
         return 2
+
+
+def _error_text(exc: BaseException) -> str:
+    """One line for the user: an OS error as ``FILE: reason`` (not ``[Errno 2] ...``)."""
+    if isinstance(exc, OSError) and exc.strerror and exc.filename is not None:
+        return f"{exc.filename}: {exc.strerror.lower()}"
+    return str(exc)
 
 
 def module_main(

@@ -35,7 +35,10 @@ def load_demonstration(
     if suffix == ".npz":
         with np.load(path) as data:
             if "t" not in data or "X" not in data:
-                raise DemonstrationError(f"{path}: an NPZ demonstration needs arrays 't' and 'X'")
+                found = ", ".join(f"'{k}'" for k in data.files) or "none"
+                raise DemonstrationError(
+                    f"{path}: an NPZ demonstration needs arrays 't' and 'X' (found {found})"
+                )
             t, X = np.asarray(data["t"], float), np.asarray(data["X"], float)
         X = X[:, None] if X.ndim == 1 else X
         return t, X, [f"x{d}" for d in range(X.shape[1])]

@@ -66,6 +66,14 @@ def test_bad_input_is_one_clear_line(tmp_path: Path) -> None:
     assert r.returncode == 2 and "no such file" in r.stderr
     r = run_psm("learn", str(tmp_path / "demo.txt"))
     assert r.returncode == 2
+    # a missing model file: the file name and the reason, not Python's "[Errno 2] ..."
+    r = run_psm("rollout", str(tmp_path / "missing.json"))
+    assert r.returncode == 2
+    assert r.stderr == f"psm rollout: error: {tmp_path / 'missing.json'}: no such file or directory\n"
+    # an NPZ without the expected arrays says which ones it found
+    np.savez(tmp_path / "lower.npz", t=np.arange(10.0), x=np.arange(10.0))
+    r = run_psm("learn", str(tmp_path / "lower.npz"))
+    assert r.returncode == 2 and "needs arrays 't' and 'X' (found 't', 'x')" in r.stderr
 
 
 def test_demo_writes_plots(tmp_path: Path) -> None:
