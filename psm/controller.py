@@ -116,6 +116,7 @@ class PSMController:
         validate_sync(sync_mode, sync_time)
         self._D = len(chains)
         self._chains = chains
+        self._holds = [c.hold for c in chains]  # read every step (hot path)
         self._n = [len(c.k) for c in chains]
         self._sync_mode = sync_mode
         self._sync_time = float(sync_time)
@@ -253,27 +254,30 @@ class PSMController:
         if not dt > 0.0:
             raise ParameterError(f"dt must be > 0, got {dt}")
         acc = [0.0] * D
-        t_e = self._t_e
+        t_e, modes, returning, holds = self._t_e, self._modes, self._returning, self._holds
+        goal, pos_tol, vel_tol = self._goal, self._pos_tol, self._vel_tol
         braking = [False] * D
         all_done = True
+        t_big = 0.0  # the largest finite t_e of the dimensions that take part in the synchronisation
         for d in range(D):
-            a, te, mode = self._dimension(d, xs[d], vs[d], dt)
+            x_d, v_d = xs[d], vs[d]
+            a, te, mode = self._dimension(d, x_d, v_d, dt)
             acc[d] = a
             t_e[d] = te
-            self._modes[d] = mode
-            # Hold dimensions, stopped ones and one returning from an overshoot of its goal (a
-            # correction, not demonstrated progress) take no part in the synchronisation.
-            braking[d] = mode == MODE_SEGMENT and not self._chains[d].hold and not self._returning[d]
-            if not (
-                mode == MODE_TERMINAL
-                and abs(xs[d] - self._goal[d]) <= self._pos_tol
-                and abs(vs[d]) <= self._vel_tol
-            ):
+            modes[d] = mode
+            if mode == MODE_SEGMENT:
+                all_done = False
+                # Hold dimensions, stopped ones and one returning from an overshoot of its goal (a
+                # correction, not demonstrated progress) take no part in the synchronisation.
+                if not holds[d] and not returning[d]:
+                    braking[d] = True
+                    if t_big < te < math.inf:
+                        t_big = te
+            elif not (mode == MODE_TERMINAL and abs(x_d - goal[d]) <= pos_tol and abs(v_d) <= vel_tol):
                 all_done = False
         self._done = all_done
         gain = self._sync_gain
         if gain > 0.0 and D > 1:
-            t_big = max((t_e[d] for d in range(D) if braking[d] and t_e[d] < math.inf), default=0.0)
             if self._sync_mode == SYNC_BRAKE:
                 # Eq. 14: slow the dimensions ahead of the slowest one.
                 for d in range(D):
@@ -289,7 +293,10 @@ class PSMController:
                 # own law, so nothing can wait for ever.
                 tau = self._sync_time
                 lead_prev, excused = self._lead, self._excused
-                leads = [t_big - t_e[d] if braking[d] and t_e[d] < t_big else 0.0 for d in range(D)]
+                leads = [0.0] * D
+                for d in range(D):
+                    if braking[d] and t_e[d] < t_big:
+                        leads[d] = t_big - t_e[d]
                 if self._goal_moved:
                     # A lead that a goal change opens is not a demonstrated dwell: it is excused
                     # and the excuse shrinks with the slowest dimension's time to completion, so
@@ -317,13 +324,13 @@ class PSMController:
         # The segment law is exact but not gentle: a state pushed right in front of a reversal would
         # have to stop within millimetres. Saturate it; the state then overshoots the via-point and
         # the next segment (or eq. 10) brings it back. Collision stops are never saturated.
+        a_max = self._a_max
         for d in range(D):
-            if self._modes[d] == MODE_SEGMENT:
-                a_max = self._a_max[d]
-                if acc[d] > a_max:
-                    acc[d] = a_max
-                elif acc[d] < -a_max:
-                    acc[d] = -a_max
+            if modes[d] == MODE_SEGMENT:
+                if acc[d] > a_max[d]:
+                    acc[d] = a_max[d]
+                elif acc[d] < -a_max[d]:
+                    acc[d] = -a_max[d]
         return np.array(acc)
 
     def _dimension(self, d: int, x: float, v: float, dt: float) -> tuple[float, float, str]:

@@ -46,6 +46,10 @@ def test_quick_run_on_two_shapes_writes_numbers_for_both_methods(tmp_path: Path)
         for method, run in reproduction.items():
             # the path metrics on arc-length-resampled curves: finite, and DTW <= Fréchet
             assert 0.0 <= run["dtw_arc"] <= run["frechet_arc"] < 5.0, (name, method)
+        # the error budget of the default PSM: the smoothing and the learned chain alone, both
+        # well below a millimetre on these 40-mm shapes (auto_tolerance 0.5 % of the range)
+        for control in ("smoothed_demo", "psm_nominal"):
+            assert 0.0 < shape[control]["dtw"] <= shape[control]["frechet"] < 1.0, (name, control)
         copy = shape["half_sample_copy"]
         # the control is the demo itself: the raw-sample metrics see its sampling phase,
         # the arc-length ones (almost) do not
