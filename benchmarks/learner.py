@@ -391,8 +391,9 @@ def nominal_chain(model: Any, t: FloatArray) -> FloatArray:
     """The PSM's learned chain on the demonstration's clock, without the controller: at every
     time ``t (T,)`` [s] each dimension follows the PSTF of the segment whose demonstrated time
     window contains it, started at the segment's first via-point at the window's start and held
-    at its end via-point once it arrives (the deviation the fit's segmentation bounds by
-    ``auto_tolerance``). Returns ``(T, D)`` positions [unit]."""
+    at its end via-point once it arrives: the deviation the fit's segmentation holds within
+    ``auto_tolerance`` unless ``max_segments`` stops it first (on LASA within 1.11× the
+    tolerance, the fit checking at most 32 samples per segment). Returns ``(T, D)`` [unit]."""
     from psm.pstf import coefficient_c, positions
 
     out = np.empty((len(t), model.dim))
