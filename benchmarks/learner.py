@@ -363,10 +363,11 @@ def evaluate_shape(
         entry["summary"] = _summarise_runs(entry["runs"])
         result["methods"][method] = entry
     # The sampling check's controls and the PSM's error budget (see aggregate_sampling_check).
+    psm_model = fitted["psm"][1] if fitted["psm"][2] is None else None
     for key, curve in (
         ("half_sample_copy", half_sample_copy(demo0)),
-        ("smoothed_demo", smoothed_demo(demo0)),
-        ("psm_nominal", nominal_chain(fitted["psm"][1], demo0.t) if fitted["psm"][2] is None else None),
+        ("smoothed_demo", None if psm_model is None else smoothed_demo(demo0, psm_model)),
+        ("psm_nominal", None if psm_model is None else nominal_chain(psm_model, demo0.t)),
     ):
         if curve is not None:
             result[key] = {
@@ -377,14 +378,14 @@ def evaluate_shape(
     return result, traj
 
 
-def smoothed_demo(demo: Demo, sigma: float = 0.02) -> FloatArray:
-    """Demo positions ``(T, D)`` [mm] after the Gaussian smoothing the default PSM learns from
-    (``sigma`` [s], :func:`psm.fitting.smooth`): the part of the PSM's error that comes before
-    any segment is fitted."""
+def smoothed_demo(demo: Demo, model: Any) -> FloatArray:
+    """Demo positions ``(T, D)`` [mm] after the Gaussian smoothing ``model`` was learned from
+    (its ``parameters.smoothing`` [s], :func:`psm.fitting.smooth`): the part of the PSM's error
+    that comes before any segment is fitted."""
     from psm.fitting import smooth, validate_demonstration
 
     t, x = validate_demonstration(demo.t, demo.x)
-    return smooth(t, x, sigma).x
+    return smooth(t, x, model.parameters.smoothing).x
 
 
 def nominal_chain(model: Any, t: FloatArray) -> FloatArray:
@@ -784,10 +785,7 @@ def speed_benchmark(
     }
 
     # --- from the LASA accuracy runs: fit vs imitate, rollout vs open_loop (medians over shapes)
-    def med(vals: list[float | None]) -> float | None:
-        good = [v for v in vals if v is not None]
-        return float(np.median(good)) if good else None
-
+    med = _median_or_none
     lasa: dict[str, Any] = {}
     for method in METHODS:
         ms = [s["methods"][method] for s in shapes.values()]
