@@ -17,6 +17,7 @@ from psm.errors import PSMError
 #: Modules that contribute sub-commands, in the order they appear in ``psm --help``.
 COMMAND_MODULES: tuple[str, ...] = (
     "services.learn_cli",
+    "services.stack_cli",
     "services.bus.cli",
     "services.arm.cli",
     "services.goal_tracker.cli",
@@ -81,6 +82,9 @@ def module_main(
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``psm`` command line; returns the process exit code."""
+    from services.supervisor import bind_to_supervisor
+
+    bind_to_supervisor()
     return dispatch(build_parser(), argv)
 
 if __name__ == "__main__":

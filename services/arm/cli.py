@@ -69,7 +69,7 @@ def _run_arm(args: argparse.Namespace) -> int:
     from services.bus.config import config_from_args
 
     extra = {
-        "arm.clock": args.clock,
+        "clock": args.clock,
         "arm.dt_s": args.dt,
         "arm.urdf": args.urdf,
         "arm.ee_frame": args.ee_frame,

@@ -20,10 +20,12 @@ from enum import Enum
 
 import numpy as np
 import pinocchio as pin
+from pydantic import Field
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotri as _potri
 
 from services.arm.robot import JointLimits, RobotModel, matrix_from_quat_xyzw
+from services.bus.config import Section
 
 
 class CommandMode(Enum):
@@ -55,15 +57,23 @@ class Command:
     joint_acceleration: np.ndarray | None = None
 
 
-@dataclass(frozen=True)
-class ValidationLimits:
-    """Plausibility bounds: a command outside them is rejected, never applied (values inside
-    them but beyond the arm's joint limits are clamped instead)."""
+class ValidationLimits(Section):
+    """Plausibility bounds (the ``[arm.validation]`` table): a command outside them is
+    rejected, never applied (values inside them but beyond the arm's joint limits are clamped
+    instead)."""
 
-    max_linear_acceleration: float = 50.0  #: m/s², norm of ẍ_des
-    max_angular_velocity: float = 10.0  #: rad/s, norm of ω_ref
-    max_joint_acceleration: float = 100.0  #: rad/s², per joint in joint mode
-    quat_norm_tolerance: float = 0.1  #: reject quaternions with | ‖q‖ − 1 | above this
+    max_linear_acceleration: float = Field(
+        50.0, gt=0.0, description="commands above this EE acceleration norm are rejected [m/s^2]"
+    )
+    max_angular_velocity: float = Field(
+        10.0, gt=0.0, description="commands above this angular velocity norm are rejected [rad/s]"
+    )
+    max_joint_acceleration: float = Field(
+        100.0, gt=0.0, description="joint-mode commands above this magnitude are rejected [rad/s^2]"
+    )
+    quat_norm_tolerance: float = Field(
+        0.1, gt=0.0, description="quaternions with | |q| - 1 | above this are rejected"
+    )
 
 
 class CommandRejectedError(ValueError):
@@ -142,25 +152,19 @@ def validate_command(cmd: Command, n: int, bounds: ValidationLimits) -> Command:
     return Command(cmd.tick, CommandMode.CARTESIAN, acc, quat, omega)
 
 
-@dataclass
-class ControllerGains:
-    """Gains of the IK controller.
+class ControllerGains(Section):
+    """Gains of the IK controller (the ``[arm.gains]`` table)."""
 
-    Attributes:
-        orientation_kp: orientation PD stiffness, 1/s² (rad/s² per rad of error).
-        orientation_kd: orientation PD damping, 1/s.
-        nullspace_kp: posture stiffness in the null space, 1/s².
-        nullspace_kd: joint damping in the null space, 1/s.
-        singular_epsilon: smallest singular value of J below which damping starts.
-        damping_max: maximum damping λ_max (same units as J's singular values).
-    """
-
-    orientation_kp: float = 100.0
-    orientation_kd: float = 20.0
-    nullspace_kp: float = 10.0
-    nullspace_kd: float = 6.0
-    singular_epsilon: float = 0.04
-    damping_max: float = 0.05
+    orientation_kp: float = Field(100.0, ge=0.0, description="orientation PD stiffness [1/s^2]")
+    orientation_kd: float = Field(20.0, ge=0.0, description="orientation PD damping [1/s]")
+    nullspace_kp: float = Field(10.0, ge=0.0, description="null-space posture stiffness [1/s^2]")
+    nullspace_kd: float = Field(6.0, ge=0.0, description="null-space joint damping [1/s]")
+    singular_epsilon: float = Field(
+        0.04, gt=0.0, description="smallest singular value of J below which DLS damping starts"
+    )
+    damping_max: float = Field(
+        0.05, ge=0.0, description="maximum DLS damping lambda (units of J's singular values)"
+    )
 
 
 @dataclass

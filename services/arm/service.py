@@ -4,7 +4,7 @@ Every tick the arm publishes :class:`~services.bus.messages.ArmState` on ``<pref
 and applies the latest valid :class:`~services.bus.messages.ArmCommand` from
 ``<prefix>/arm/command``; link transforms go to ``<prefix>/arm/transforms`` at a lower rate.
 
-Clock modes (DESIGN §3):
+Clock modes (the stack's ``clock``):
 
 * ``realtime`` — state k is published at ``t0 + k·dt`` (wall clock); commands arriving before
   ``t0 + (k+1)·dt`` drive the step to k+1; a later command counts as *late*.
@@ -124,7 +124,7 @@ class ArmService:
         self.config = config
         section = config.arm
         self.robot = section.load_robot()
-        self.sim = ArmSim(self.robot, section.sim_config(self.robot))
+        self.sim = ArmSim(self.robot, section)
         self.svc = service or Service(SERVICE_NAME, config)
         self.keys = self.svc.keys
         self.dt_ns = section.dt_ns
@@ -190,7 +190,7 @@ class ArmService:
                 lat = t_recv - int(self._pub_ns[slot])
                 self.stats.add_latency(lat)
                 self.stats.answered_ticks += 1
-                if lat > self.dt_ns and self.config.arm.clock == "realtime":
+                if lat > self.dt_ns and self.config.clock == "realtime":
                     self.stats.late_commands += 1
             self._answered = tick
         return tick
@@ -341,7 +341,7 @@ class ArmService:
         svc.log.info(
             "arm running",
             extra={
-                "clock": section.clock,
+                "clock": self.config.clock,
                 "dt_s": section.dt_s,
                 "ee_frame": self.robot.ee_frame,
                 "urdf": self.robot.urdf_path,
@@ -352,7 +352,7 @@ class ArmService:
         gc.freeze()
         t0 = time.perf_counter()
         try:
-            if section.clock == "lockstep":
+            if self.config.clock == "lockstep":
                 self.run_lockstep()
             else:
                 self.run_realtime()
@@ -396,7 +396,7 @@ class ArmService:
     def summary(self) -> dict[str, Any]:
         """Loop statistics + simulation counters + service counters."""
         out = self.stats.summary()
-        out["clock"] = self.config.arm.clock
+        out["clock"] = self.config.clock
         out["dt_s"] = self.config.arm.dt_s
         out["sim_counters"] = dict(self.sim.counters)
         out["service_counters"] = self.svc.counters.snapshot()

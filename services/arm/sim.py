@@ -2,7 +2,7 @@
 
 :class:`ArmSim` owns the joint state and advances it one tick at a time::
 
-    sim = ArmSim(robot, ArmSimConfig(dt_ns=2_000_000))
+    sim = ArmSim(robot, ArmSimConfig(dt_s=0.002))
     snap = sim.snapshot()          # state k: publish it
     sim.submit(command)            # the command answering state k (validated, maybe rejected)
     sim.step()                     # integrate to state k+1
@@ -16,10 +16,11 @@ Integration is semi-implicit Euler: ``dq += ddq dt; q += dq dt``.
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 import pinocchio as pin
+from pydantic import Field
 
 from services.arm.controller import (
     AccelBounds,
@@ -39,37 +40,45 @@ from services.arm.robot import (
     RobotModel,
     matrix_from_quat_xyzw,
 )
+from services.bus.config import ConfigError, Section
 
 
-@dataclass
-class ArmSimConfig:
-    """Parameters of the simulated arm.
+class ArmSimConfig(Section):
+    """Parameters of the simulated arm (the simulator's part of the ``[arm]`` table)."""
 
-    Attributes:
-        dt_ns: integration step in ns (default 2 ms = 500 Hz).
-        start_pose: named pose or joint vector ``(n,)`` rad.
-        posture: null-space posture (named pose or joint vector); default the start pose.
-        watchdog_timeout_ns: sim time without a fresh valid command before braking (20 ms).
-        gains: IK controller gains.
-        validation: plausibility bounds for commands.
-        brake_fraction: share of the acceleration limits used by position-limit braking.
-    """
+    dt_s: float = Field(0.002, gt=0.0, le=0.1, description="control period [s] (500 Hz)")
+    start_pose: str | list[float] = Field(
+        "ready", description="named start pose (ready, home, neutral, middle) or joints (n,) [rad]"
+    )
+    posture: str | list[float] | None = Field(
+        None, description="null-space posture, named or (n,) [rad]; unset = the start pose"
+    )
+    watchdog_timeout_s: float = Field(
+        0.02, ge=0.0, le=10.0, description="sim time without a valid command before braking [s]"
+    )
+    gains: ControllerGains = Field(default_factory=ControllerGains)
+    validation: ValidationLimits = Field(default_factory=ValidationLimits)
+    brake_fraction: float = Field(
+        0.5, gt=0.0, le=1.0,
+        description="share of the acceleration limits used by position-limit braking",
+    )
 
-    dt_ns: int = 2_000_000
-    start_pose: str | list[float] = "ready"
-    posture: str | list[float] | None = None
-    watchdog_timeout_ns: int = 20_000_000
-    gains: ControllerGains = field(default_factory=ControllerGains)
-    validation: ValidationLimits = field(default_factory=ValidationLimits)
-    brake_fraction: float = 0.5
+    def check(self) -> None:
+        """The period is whole nanoseconds; the watchdog is at least one period."""
+        if abs(round(self.dt_s * 1e9) - self.dt_s * 1e9) > 1e-3:
+            raise ConfigError("dt_s", "must be a whole number of nanoseconds")
+        if self.watchdog_timeout_s < self.dt_s:
+            raise ConfigError("watchdog_timeout_s", "must be at least one control period dt_s")
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.dt_ns, int) or self.dt_ns <= 0:
-            raise ValueError("dt_ns must be a positive integer number of nanoseconds")
-        if not isinstance(self.watchdog_timeout_ns, int) or self.watchdog_timeout_ns < 0:
-            raise ValueError("watchdog_timeout_ns must be a non-negative integer")
-        if not 0.0 < self.brake_fraction <= 1.0:
-            raise ValueError("brake_fraction must be in (0, 1]")
+    @property
+    def dt_ns(self) -> int:
+        """Control period [ns]."""
+        return round(self.dt_s * 1e9)
+
+    @property
+    def watchdog_timeout_ns(self) -> int:
+        """Watchdog timeout [ns]."""
+        return round(self.watchdog_timeout_s * 1e9)
 
 
 @dataclass(frozen=True)

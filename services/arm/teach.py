@@ -234,7 +234,7 @@ def teach(robot: RobotModel, path: Path3D, config: TeachConfig | None = None) ->
     dt = cfg.dt_ns * 1e-9
     x0 = path.sample(np.array([0.0]))[0][0]
     q0 = robot.solve_ik(x0, cfg.rotation, cfg.seed_pose)
-    sim = ArmSim(robot, ArmSimConfig(dt_ns=cfg.dt_ns, start_pose=list(q0)))
+    sim = ArmSim(robot, ArmSimConfig(dt_s=cfg.dt_ns * 1e-9, start_pose=list(q0)))
     quat = quat_xyzw_from_matrix(sim.snapshot().ee.rotation)
     n_before = round(cfg.rest_before_s / dt)
     n_motion = int(np.ceil(path.duration / dt))

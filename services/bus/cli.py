@@ -93,11 +93,12 @@ def _cmd_echo(args: argparse.Namespace) -> int:
 
 
 def _cmd_router(args: argparse.Namespace) -> int:
-    from services.bus.config import ConfigError, ServiceConfig, config_from_args
-    from services.bus.router import run_router
+    from services.bus.config import ConfigError, config_from_args
+    from services.bus.router import RouterConfig, run_router
 
     try:
-        cfg = config_from_args(ServiceConfig, args, {"zenoh.mode": "router"})
+        listen, args.listen = args.listen, None
+        cfg = config_from_args(RouterConfig, args, {"router.listen": listen})
         return run_router(cfg)
     except ConfigError as exc:
         print(f"psm serve router: {exc}", file=sys.stderr)
@@ -153,7 +154,8 @@ def register(subparsers: Any) -> None:
 
     r = serve_targets(subparsers).add_parser(
         "router", help="zenoh router (python zenoh, router mode)",
-        description="Run a Zenoh router; listens on tcp/0.0.0.0:7447 unless --listen is given.",
+        description="Run a Zenoh router; listens on router.listen (default tcp/0.0.0.0:7447; "
+        "--listen sets it).",
     )
     add_config_arguments(r)
     r.set_defaults(func=_cmd_router)

@@ -1,78 +1,95 @@
 """Typed, validated service configuration: TOML file < environment variables < CLI flags.
 
-Every service describes its configuration as a dataclass deriving from :class:`ServiceConfig`
-(which brings the bus settings: ``prefix``, ``[zenoh]``, logging, status period) and adds its own
-sections as nested dataclasses. :func:`load_config` builds it from defaults, an optional TOML file
-(stdlib ``tomllib``), environment variables and CLI overrides, and validates every field by its
-type annotation and ``field(metadata=...)`` constraints at start-up. A bad value raises
-:class:`ConfigError` whose message is one line naming the field::
+Every service describes its configuration as a subclass of :class:`ServiceConfig` (the bus
+settings every process shares: ``prefix``, ``clock``, ``[zenoh]``, logging, status period) with
+its own sections as nested :class:`Section` models (pydantic v2). :func:`load_config` builds it
+with pydantic-settings from the model defaults, a TOML file, the environment and overrides, and
+validates every field at start-up. A bad value raises :class:`ConfigError` whose message is one
+line naming the field::
 
-    config error: zenoh.mode: expected one of peer|client|router, got 'x'
+    config error: zenoh.mode: Input should be 'peer', 'client' or 'router' (got 'x')
 
-Environment variables: every field ``a.b`` is read from ``PSM_A_B`` (upper case), e.g.
-``PSM_PREFIX``, ``PSM_ZENOH_MODE``, ``PSM_ZENOH_CONNECT`` (comma-separated list),
-``PSM_ZENOH_LISTEN``, ``PSM_ARM_DT_S``; aliases: ``PSM_MULTICAST`` = ``zenoh.multicast``.
+One file describes a whole stack (``configs/stack.toml``): each service reads the shared
+top-level keys and its own sections and ignores the tables of the other services; a scalar it
+does not know, or an unknown key inside its own sections, is an error.
+
+Environment variables: ``PSM_<FIELD>`` for a top-level field, ``PSM_<SECTION>__<FIELD>`` for a
+nested one (double underscore between levels), case-insensitive: ``PSM_PREFIX``,
+``PSM_CLOCK``, ``PSM_ZENOH__MODE``, ``PSM_ZENOH__CONNECT`` (a comma-separated list or a JSON
+list), ``PSM_ARM__DT_S``, ``PSM_GOAL_TRACKER__CAMERA__SOURCE``.
 
 Example (a service's own config)::
 
-    from dataclasses import dataclass, field
-    from services.bus.config import ServiceConfig, add_config_arguments, config_from_args, spec
+    from pydantic import Field
+    from services.bus.config import Section, ServiceConfig, load_config
 
-    @dataclass
-    class ArmSection:
-        dt_s: float = spec(0.002, "control period, s", gt=0.0, le=0.1)
-        clock: str = spec("realtime", "clock mode", choices=("realtime", "lockstep"))
+    class ArmSection(Section):
+        dt_s: float = Field(0.002, gt=0.0, le=0.1, description="control period [s]")
 
-    @dataclass
     class ArmConfig(ServiceConfig):
-        arm: ArmSection = field(default_factory=ArmSection)
+        arm: ArmSection = Field(default_factory=ArmSection)
 
-    # in register(): add_config_arguments(parser)
-    # in func(args): cfg = config_from_args(ArmConfig, args)   # raises ConfigError
-
-TOML file::
-
-    prefix = "psm"
-    [zenoh]
-    mode = "client"
-    connect = ["tcp/127.0.0.1:7447"]
-    multicast = false
-    [arm]
-    dt_s = 0.001
+    cfg = load_config(ArmConfig, "configs/stack.toml", overrides={"arm.dt_s": "0.001"})
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import contextvars
+import json
+import math
 import os
 import tomllib
-import types
-import typing
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import Annotated, Any, Literal, TypeVar
+
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+from pydantic_settings import (
+    BaseSettings,
+    EnvSettingsSource,
+    NoDecode,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+)
 
 __all__ = [
-    "ENV_ALIASES",
+    "ENV_PREFIX",
+    "ClockMode",
     "ConfigError",
+    "EndpointList",
+    "Section",
     "ServiceConfig",
+    "StrList",
+    "Vec3",
     "ZenohConfig",
     "add_config_arguments",
+    "config_error",
     "config_from_args",
     "config_to_dict",
     "env_var_name",
+    "field_defaults",
     "load_config",
-    "meta",
-    "spec",
+    "parse_override",
 ]
 
-T = TypeVar("T")
+T = TypeVar("T", bound="ServiceConfig")
 
-#: Environment variables that are not the generic ``PSM_<SECTION>_<FIELD>`` name of a field.
-ENV_ALIASES: dict[str, str] = {"PSM_MULTICAST": "zenoh.multicast"}
 ENV_PREFIX = "PSM_"
+ENV_NESTED_DELIMITER = "__"
+
+#: The stack's clock: ``realtime`` (the arm sleeps to the wall clock) or ``lockstep`` (the arm
+#: advances a tick only when the command answering the previous state has arrived).
+ClockMode = Literal["realtime", "lockstep"]
 
 
 class ConfigError(ValueError):
@@ -84,52 +101,55 @@ class ConfigError(ValueError):
         super().__init__(f"config error: {path}: {reason}" if path else f"config error: {reason}")
 
 
-def meta(
-    help: str = "",
-    *,
-    choices: Sequence[Any] | None = None,
-    ge: float | None = None,
-    gt: float | None = None,
-    le: float | None = None,
-    lt: float | None = None,
-    min_len: int | None = None,
-) -> dict[str, Any]:
-    """Field metadata understood by the validator (see :func:`spec`)."""
-    return {
-        "help": help,
-        "choices": tuple(choices) if choices is not None else None,
-        "ge": ge,
-        "gt": gt,
-        "le": le,
-        "lt": lt,
-        "min_len": min_len,
-    }
+def _split_commas(value: Any) -> Any:
+    """A list given as text (environment, ``--set``) as ``a, b`` or a JSON list."""
+    if isinstance(value, str):
+        text = value.strip()
+        if text.startswith("["):
+            try:
+                return json.loads(text)
+            except json.JSONDecodeError:
+                return value
+        return [v.strip() for v in text.split(",") if v.strip()]
+    return value
 
 
-def spec(
-    default: Any = dataclasses.MISSING,
-    help: str = "",
-    *,
-    choices: Sequence[Any] | None = None,
-    ge: float | None = None,
-    gt: float | None = None,
-    le: float | None = None,
-    lt: float | None = None,
-    min_len: int | None = None,
-    default_factory: Any = dataclasses.MISSING,
-) -> Any:
-    """A dataclass ``field`` with a help text and validation constraints (``choices``, numeric
-    bounds ``ge``/``gt``/``le``/``lt``, ``min_len`` for strings and lists).
+#: A list of strings that may be given as comma-separated text.
+StrList = Annotated[list[str], NoDecode, BeforeValidator(_split_commas)]
+#: Zenoh endpoints (``tcp/HOST:PORT``), comma-separated in text.
+EndpointList = StrList
 
-    For list fields ruff prefers ``field(default_factory=list, metadata=meta(...))``.
-    """
-    metadata = meta(help, choices=choices, ge=ge, gt=gt, le=le, lt=lt, min_len=min_len)
-    if default_factory is not dataclasses.MISSING:
-        return field(default_factory=default_factory, metadata=metadata)
-    if isinstance(default, list | dict):
-        value = default
-        return field(default_factory=lambda: type(value)(value), metadata=metadata)
-    return field(default=default, metadata=metadata)
+
+def _check_vec3(value: Any) -> Any:
+    if isinstance(value, list | tuple):
+        if len(value) != 3:
+            raise ValueError(f"expected 3 numbers, got {len(value)}")
+        for v in value:
+            if isinstance(v, int | float) and not math.isfinite(float(v)):
+                raise ValueError(f"expected finite numbers, got {list(value)}")
+    return value
+
+
+#: A 3-vector of finite numbers (a list in TOML, JSON or comma-separated in text).
+Vec3 = Annotated[list[float], NoDecode, BeforeValidator(_check_vec3), BeforeValidator(_split_commas)]
+
+
+class Section(BaseModel):
+    """A config section (a TOML table): unknown keys are errors, defaults are validated,
+    assignments are validated too (``cfg.arm.dt_s = -1`` raises)."""
+
+    model_config = ConfigDict(
+        extra="forbid", validate_default=True, validate_assignment=True, allow_inf_nan=False
+    )
+
+    def check(self) -> None:
+        """Cross-field checks of a section: raise :class:`ConfigError` with the field's name
+        relative to the section (``ConfigError("upper_m", "must be > lower_m")``)."""
+
+    @model_validator(mode="after")
+    def _run_checks(self) -> Section:
+        self.check()
+        return self
 
 
 # --------------------------------------------------------------------------------------------
@@ -137,282 +157,226 @@ def spec(
 # --------------------------------------------------------------------------------------------
 
 
-@dataclass
-class ZenohConfig:
+class ZenohConfig(Section):
     """How a service joins the Zenoh network."""
 
-    mode: str = spec("peer", "zenoh mode", choices=("peer", "client", "router"))
-    connect: list[str] = field(
-        default_factory=list, metadata=meta("endpoints to connect to, e.g. tcp/127.0.0.1:7447")
+    mode: Literal["peer", "client", "router"] = Field("peer", description="zenoh mode")
+    connect: EndpointList = Field(
+        default_factory=list, description="endpoints to connect to, e.g. tcp/127.0.0.1:7447"
     )
-    listen: list[str] = field(
-        default_factory=list, metadata=meta("endpoints to listen on, e.g. tcp/0.0.0.0:7447")
+    listen: EndpointList = Field(
+        default_factory=list, description="endpoints to listen on, e.g. tcp/0.0.0.0:7447"
     )
-    multicast: bool = spec(True, "multicast scouting on/off (docker and tests: off)")
-    gossip: bool = spec(True, "gossip scouting on/off")
-    config_file: str = spec("", "optional zenoh JSON5 config file applied first")
-    shared_memory: bool = spec(False, "enable zenoh shared-memory transport")
-    low_latency: bool = spec(
+    multicast: bool = Field(True, description="multicast scouting on/off (docker and tests: off)")
+    gossip: bool = Field(True, description="gossip scouting on/off")
+    config_file: str = Field("", description="optional zenoh JSON5 config file applied first")
+    shared_memory: bool = Field(False, description="enable zenoh shared-memory transport")
+    low_latency: bool = Field(
         False,
-        "zenoh's low-latency unicast transport (no batching pipeline, QoS priorities off); used "
-        "on a link only if both ends enable it. For the arm<->planner control loop (see "
-        "docs/bus.md for what it measured here). Not for sessions that send messages near or "
-        "above 64 KiB (camera images): the low-latency transport does not fragment and was "
-        "measured to drop some of them",
+        description="zenoh's low-latency unicast transport (no batching pipeline, QoS "
+        "priorities off); used on a link only if both ends enable it. For the arm<->planner "
+        "control loop. Not for sessions that send messages near or above 64 KiB (camera "
+        "images): the low-latency transport does not fragment them",
     )
 
-    def validate(self) -> None:
-        """Cross-field checks (called by the loader)."""
-        for name in ("connect", "listen"):
-            for ep in getattr(self, name):
-                proto, sep, rest = ep.partition("/")
-                if not sep or not proto or not rest:
-                    raise ConfigError(
-                        f"zenoh.{name}", f"expected endpoints like 'tcp/HOST:PORT', got {ep!r}"
-                    )
+    @field_validator("connect", "listen")
+    @classmethod
+    def _endpoints(cls, value: list[str]) -> list[str]:
+        for ep in value:
+            proto, sep, rest = ep.partition("/")
+            if not sep or not proto or not rest:
+                raise ValueError(f"expected endpoints like 'tcp/HOST:PORT', got {ep!r}")
+        return value
+
+    def check(self) -> None:
+        """A client without multicast scouting needs an endpoint."""
         if self.mode == "client" and not self.connect and not self.multicast:
-            raise ConfigError(
-                "zenoh.connect", "client mode with multicast off needs at least one endpoint"
-            )
+            raise ConfigError("connect", "client mode with multicast off needs at least one endpoint")
 
 
-@dataclass
-class ServiceConfig:
+class _Sources:
+    """What :func:`load_config` layers under the init arguments (one load at a time per
+    context): the parsed TOML file and the environment mapping."""
+
+    def __init__(self, file_data: Mapping[str, Any], env: Mapping[str, str] | None) -> None:
+        self.file_data = file_data
+        self.env = env
+
+
+_SOURCES: contextvars.ContextVar[_Sources | None] = contextvars.ContextVar(
+    "psm_config_sources", default=None
+)
+
+
+class _MappingEnvSource(EnvSettingsSource):
+    """pydantic-settings' environment source reading a given mapping instead of os.environ."""
+
+    def __init__(self, settings_cls: type[BaseSettings], env: Mapping[str, str]) -> None:
+        self._mapping = dict(env)
+        super().__init__(settings_cls)
+
+    def _load_env_vars(self) -> Mapping[str, str | None]:
+        return {k.lower(): v for k, v in self._mapping.items()}
+
+
+class _FileSource(PydanticBaseSettingsSource):
+    """The TOML file of :func:`load_config`, with the tables of other services removed."""
+
+    def __init__(self, settings_cls: type[BaseSettings], data: Mapping[str, Any]) -> None:
+        super().__init__(settings_cls)
+        self._data = {
+            k: v for k, v in data.items()
+            if k in settings_cls.model_fields or not isinstance(v, dict)
+        }
+
+    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:
+        return self._data.get(field_name), field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        return dict(self._data)
+
+
+class ServiceConfig(BaseSettings):
     """Settings shared by every service; services subclass it and add sections."""
 
-    prefix: str = spec("psm", "key-expression prefix of the cell", min_len=1)
-    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
-    log_level: str = spec(
-        "INFO", "log level", choices=("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")
-    )
-    log_format: str = spec("text", "log line format", choices=("text", "json"))
-    status_period_s: float = spec(1.0, "ServiceStatus publication period, s", gt=0.0, le=3600.0)
-    queue_size: int = spec(
-        1024, "default bounded queue length of subscription handlers", ge=1, le=10_000_000
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX,
+        env_nested_delimiter=ENV_NESTED_DELIMITER,
+        case_sensitive=False,
+        extra="forbid",
+        validate_default=True,
+        validate_assignment=True,
+        nested_model_default_partial_update=False,
     )
 
-    def validate(self) -> None:
-        """Cross-field checks (called by the loader)."""
+    prefix: str = Field("psm", min_length=1, description="key-expression prefix of the cell")
+    clock: ClockMode = Field(
+        "realtime",
+        description="the stack's clock: realtime (the arm follows the wall clock) or lockstep "
+        "(the arm steps when its command arrives: deterministic, faster than real time)",
+    )
+    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"] = Field(
+        "INFO", description="log level"
+    )
+    log_format: Literal["text", "json"] = Field("text", description="log line format")
+    status_period_s: float = Field(
+        1.0, gt=0.0, le=3600.0, description="ServiceStatus publication period [s]"
+    )
+    queue_size: int = Field(
+        1024, ge=1, le=10_000_000, description="bounded queue length of subscription handlers"
+    )
+
+    @field_validator("prefix")
+    @classmethod
+    def _prefix_is_a_key(cls, value: str) -> str:
         from services.bus.messages import InvalidKeyError, Keys
 
         try:
-            Keys(self.prefix)
+            Keys(value)
         except InvalidKeyError as exc:
-            raise ConfigError("prefix", str(exc)) from None
+            raise ValueError(str(exc)) from None
+        return value
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        """Flags (init arguments) > environment > TOML file > defaults."""
+        sources = _SOURCES.get()
+        if sources is None:
+            return (init_settings, env_settings)
+        env: PydanticBaseSettingsSource = (
+            env_settings if sources.env is None else _MappingEnvSource(settings_cls, sources.env)
+        )
+        return (init_settings, env, _FileSource(settings_cls, sources.file_data))
 
 
 # --------------------------------------------------------------------------------------------
-# Loading and validation
+# Loading
 # --------------------------------------------------------------------------------------------
 
 
-def _hints(cls: type) -> dict[str, Any]:
-    return typing.get_type_hints(cls)
+def config_error(exc: ValidationError) -> ConfigError:
+    """The first error of a pydantic ``ValidationError`` as one :class:`ConfigError` line."""
+    err = exc.errors()[0]
+    path = ".".join(str(p) for p in err["loc"])
+    if err["type"] == "extra_forbidden":
+        return ConfigError(path, "unknown field")
+    ctx_error = err.get("ctx", {}).get("error")
+    if isinstance(ctx_error, ConfigError):
+        return ConfigError(".".join(p for p in (path, ctx_error.path) if p), ctx_error.reason)
+    msg = err["msg"].removeprefix("Value error, ")
+    if err["type"] not in ("value_error", "assertion_error") and "input" in err:
+        value = err["input"]
+        if not isinstance(value, dict):
+            msg += f" (got {value!r})"
+    return ConfigError(path, msg)
 
 
-def _fields(cls: type) -> list[dataclasses.Field[Any]]:
-    return [f for f in dataclasses.fields(cls) if f.init]
+def read_toml(path: str | Path) -> dict[str, Any]:
+    """Parse a TOML config file; raises :class:`ConfigError` with the file's name."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            return tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError("", f"config file not found: {p}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("", f"{p}: invalid TOML: {exc}") from None
+    except OSError as exc:
+        raise ConfigError("", f"cannot read config file {p}: {exc.strerror}") from None
 
 
-def _is_dataclass_type(tp: Any) -> bool:
-    return isinstance(tp, type) and dataclasses.is_dataclass(tp)
+def parse_override(text: str) -> Any:
+    """A ``--set`` value: a TOML value if it parses as one (``0.001``, ``true``,
+    ``["a", "b"]``, ``[1, 2, 3]``), else the text itself."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
 
 
-def _type_name(tp: Any) -> str:
-    return getattr(tp, "__name__", str(tp))
-
-
-def _parse_bool(path: str, value: Any) -> bool:
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, str):
-        low = value.strip().lower()
-        if low in ("1", "true", "yes", "on"):
-            return True
-        if low in ("0", "false", "no", "off"):
-            return False
-    raise ConfigError(path, f"expected a boolean (true/false), got {value!r}")
-
-
-def _coerce(path: str, tp: Any, value: Any, from_text: bool) -> Any:
-    """Convert ``value`` to annotation ``tp`` (parsing strings when ``from_text``)."""
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if origin in (typing.Union, types.UnionType):
-        if type(None) in args and (value is None or (from_text and value == "")):
-            return None
-        errors = []
-        for arg in args:
-            if arg is type(None):
-                continue
-            try:
-                return _coerce(path, arg, value, from_text)
-            except ConfigError as exc:
-                errors.append(exc.reason)
-        raise ConfigError(path, errors[0] if errors else f"invalid value {value!r}")
-    if origin is Literal:
-        choices = args
-        if from_text and isinstance(value, str):
-            for c in choices:
-                if str(c) == value:
-                    return c
-        if value not in choices:
-            raise ConfigError(
-                path, f"expected one of {'|'.join(map(str, choices))}, got {value!r}"
-            )
-        return value
-    if origin in (list, tuple, Sequence):
-        item_tp = args[0] if args else Any
-        if from_text and isinstance(value, str):
-            value = [v.strip() for v in value.split(",") if v.strip()]
-        if not isinstance(value, list | tuple):
-            raise ConfigError(path, f"expected a list, got {value!r}")
-        items = [_coerce(f"{path}[{i}]", item_tp, v, from_text) for i, v in enumerate(value)]
-        return tuple(items) if origin is tuple else items
-    if tp is Any:
-        return value
-    if tp is bool:
-        return _parse_bool(path, value)
-    if tp is int:
-        if isinstance(value, bool):
-            raise ConfigError(path, f"expected an integer, got {value!r}")
-        if isinstance(value, int):
-            return value
-        if from_text and isinstance(value, str):
-            try:
-                return int(value.strip(), 0)
-            except ValueError:
-                pass
-        raise ConfigError(path, f"expected an integer, got {value!r}")
-    if tp is float:
-        if isinstance(value, bool):
-            raise ConfigError(path, f"expected a number, got {value!r}")
-        if isinstance(value, int | float):
-            return float(value)
-        if from_text and isinstance(value, str):
-            try:
-                return float(value)
-            except ValueError:
-                pass
-        raise ConfigError(path, f"expected a number, got {value!r}")
-    if tp is str:
-        if isinstance(value, str):
-            return value
-        raise ConfigError(path, f"expected a string, got {value!r}")
-    if tp is Path:
-        if isinstance(value, str | Path):
-            return Path(value)
-        raise ConfigError(path, f"expected a path, got {value!r}")
-    raise ConfigError(path, f"unsupported field type {_type_name(tp)}")
-
-
-def _check_constraints(path: str, f: dataclasses.Field[Any], value: Any) -> None:
-    md = f.metadata
-    choices = md.get("choices")
-    if choices and value not in choices:
-        raise ConfigError(path, f"expected one of {'|'.join(map(str, choices))}, got {value!r}")
-    for key, ok, word in (
-        ("ge", lambda v, b: v >= b, ">="),
-        ("gt", lambda v, b: v > b, ">"),
-        ("le", lambda v, b: v <= b, "<="),
-        ("lt", lambda v, b: v < b, "<"),
-    ):
-        bound = md.get(key)
-        if bound is not None and isinstance(value, int | float) and not ok(value, bound):
-            raise ConfigError(path, f"expected a value {word} {bound}, got {value!r}")
-    if isinstance(value, float) and value != value:  # NaN
-        raise ConfigError(path, "expected a number, got nan")
-    min_len = md.get("min_len")
-    if min_len is not None and hasattr(value, "__len__") and len(value) < min_len:
-        raise ConfigError(path, f"expected at least {min_len} item(s)/character(s), got {value!r}")
-
-
-def _build(cls: type[T], data: Mapping[str, Any], path: str, from_text: bool) -> T:
-    """Build dataclass ``cls`` from nested ``data`` (missing fields keep their defaults)."""
-    if not isinstance(data, Mapping):
-        raise ConfigError(path, f"expected a table, got {data!r}")
-    hints = _hints(cls)
-    known = {f.name: f for f in _fields(cls)}
-    for key in data:
-        if key not in known:
-            where = f"{path}.{key}" if path else key
-            raise ConfigError(where, f"unknown field (known: {', '.join(sorted(known))})")
-    kwargs: dict[str, Any] = {}
-    for name in known:
-        sub = f"{path}.{name}" if path else name
-        tp = hints[name]
-        if _is_dataclass_type(tp):
-            kwargs[name] = _build(tp, data.get(name, {}), sub, from_text)
+def _nest(overrides: Mapping[str, Any]) -> dict[str, Any]:
+    tree: dict[str, Any] = {}
+    for path, value in overrides.items():
+        if value is None:
             continue
-        if name not in data:
-            continue
-        value = _coerce(sub, tp, data[name], from_text)
-        kwargs[name] = value
-    obj = cls(**kwargs)
-    _validate(obj, path)
-    return obj
+        parts = path.split(".")
+        node = tree
+        for p in parts[:-1]:
+            nxt = node.setdefault(p, {})
+            if not isinstance(nxt, dict):
+                raise ConfigError(path, f"{p} is set twice")
+            node = nxt
+        node[parts[-1]] = value
+    return tree
 
 
-def _validate(obj: Any, path: str) -> None:
-    hints = _hints(type(obj))
-    for f in _fields(type(obj)):
-        sub = f"{path}.{f.name}" if path else f.name
-        value = getattr(obj, f.name)
-        if _is_dataclass_type(hints[f.name]):
-            continue  # validated when built
-        _check_constraints(sub, f, value)
-    validate = getattr(obj, "validate", None)
-    if callable(validate):
-        try:
-            validate()
-        except ConfigError as exc:
-            if path and not exc.path.startswith(path + "."):
-                raise ConfigError(f"{path}.{exc.path}", exc.reason) from None
-            raise
-
-
-def _leaf_paths(cls: type, prefix: str = "") -> dict[str, Any]:
-    """Every leaf field of ``cls`` as ``dotted.path -> annotation``."""
-    out: dict[str, Any] = {}
-    hints = _hints(cls)
-    for f in _fields(cls):
-        path = f"{prefix}.{f.name}" if prefix else f.name
-        tp = hints[f.name]
-        if _is_dataclass_type(tp):
-            out.update(_leaf_paths(tp, path))
-        else:
-            out[path] = tp
-    return out
-
-
-def env_var_name(path: str) -> str:
-    """Environment variable of a dotted field path: ``zenoh.mode`` -> ``PSM_ZENOH_MODE``."""
-    return ENV_PREFIX + path.replace(".", "_").upper()
-
-
-def _set_path(tree: dict[str, Any], path: str, value: Any) -> None:
-    parts = path.split(".")
-    node = tree
-    for p in parts[:-1]:
-        nxt = node.setdefault(p, {})
-        if not isinstance(nxt, dict):
-            raise ConfigError(path, f"{p} is not a table")
-        node = nxt
-    node[parts[-1]] = value
-
-
-def _merge(base: dict[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
+def _merge(base: Mapping[str, Any], over: Mapping[str, Any]) -> dict[str, Any]:
     out = dict(base)
     for k, v in over.items():
-        if isinstance(v, Mapping) and isinstance(out.get(k), dict):
+        if isinstance(v, Mapping) and isinstance(out.get(k), Mapping):
             out[k] = _merge(out[k], v)
         else:
             out[k] = v
     return out
 
 
-def _text_to_typed(path: str, tp: Any, text: str) -> Any:
-    return _coerce(path, tp, text, from_text=True)
+def _check_override_paths(cls: type[BaseModel], tree: Mapping[str, Any], prefix: str = "") -> None:
+    for key, value in tree.items():
+        path = f"{prefix}{key}"
+        field = cls.model_fields.get(key)
+        if field is None:
+            raise ConfigError(path, "unknown field")
+        ann = field.annotation
+        if isinstance(value, dict) and isinstance(ann, type) and issubclass(ann, BaseModel):
+            _check_override_paths(ann, value, path + ".")
 
 
 def load_config(
@@ -424,62 +388,57 @@ def load_config(
 ) -> T:
     """Build and validate a ``cls`` config.
 
-    Precedence, lowest first: dataclass defaults, the TOML file at ``path`` (if given), the
-    environment ``env`` (default ``os.environ``; ``PSM_<SECTION>_<FIELD>`` and
-    :data:`ENV_ALIASES`), then ``overrides`` (dotted path -> value; strings are parsed like env
-    values, e.g. from ``--set arm.dt_s=0.001``). Raises :class:`ConfigError`.
+    Precedence, lowest first: the model's defaults, the TOML file at ``path`` (other services'
+    tables in it are ignored), the environment ``env`` (default ``os.environ``), then
+    ``overrides`` (dotted path -> value; a string is parsed by :func:`parse_override`, as from
+    ``--set arm.dt_s=0.001``). Raises :class:`ConfigError`.
     """
-    if not _is_dataclass_type(cls):
-        raise TypeError(f"{cls!r} is not a dataclass")
-    env = os.environ if env is None else env
-    data: dict[str, Any] = {}
-    if path is not None and str(path) != "":
-        p = Path(path)
-        try:
-            with p.open("rb") as fh:
-                data = tomllib.load(fh)
-        except FileNotFoundError:
-            raise ConfigError("", f"config file not found: {p}") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError("", f"{p}: invalid TOML: {exc}") from None
-        except OSError as exc:
-            raise ConfigError("", f"cannot read config file {p}: {exc.strerror}") from None
-        # type-check the file's values strictly (no string parsing) before layering
-        _build(cls, data, "", from_text=False)
-    leaves = _leaf_paths(cls)
-    layered: dict[str, Any] = {}
-    env_map = {env_var_name(p): p for p in leaves}
-    env_map.update({k: v for k, v in ENV_ALIASES.items() if v in leaves})
-    for var, fpath in env_map.items():
-        if var in env:
-            try:
-                _set_path(layered, fpath, _text_to_typed(fpath, leaves[fpath], env[var]))
-            except ConfigError as exc:
-                raise ConfigError(f"{exc.path} (from ${var})", exc.reason) from None
-    for fpath, value in (overrides or {}).items():
-        if value is None:
-            continue
-        if fpath not in leaves:
-            raise ConfigError(fpath, "unknown field")
-        if isinstance(value, str):
-            value = _text_to_typed(fpath, leaves[fpath], value)
-        _set_path(layered, fpath, value)
-    return _build(cls, _merge(data, layered), "", from_text=False)
+    data = read_toml(path) if path is not None and str(path) != "" else {}
+    ov = {k: parse_override(v) if isinstance(v, str) else v for k, v in (overrides or {}).items()}
+    tree = _nest(ov)
+    _check_override_paths(cls, tree)
+    token = _SOURCES.set(_Sources(data, env))
+    try:
+        return cls(**tree)
+    except ValidationError as exc:
+        raise _with_env_source(config_error(exc), env) from None
+    finally:
+        _SOURCES.reset(token)
 
 
-def config_to_dict(cfg: Any) -> dict[str, Any]:
-    """A plain nested dict of a config (for metadata snapshots and ``--print-config``)."""
+def _with_env_source(err: ConfigError, env: Mapping[str, str] | None) -> ConfigError:
+    """Name the environment variable in the error when the bad value came from one."""
+    var = env_var_name(err.path) if err.path else ""
+    names = {k.upper() for k in (os.environ if env is None else env)}
+    if var and var in names:
+        return ConfigError(f"{err.path} (from ${var})", err.reason)
+    return err
 
-    def conv(v: Any) -> Any:
-        if isinstance(v, Path):
-            return str(v)
-        if isinstance(v, list | tuple):
-            return [conv(x) for x in v]
-        if isinstance(v, dict):
-            return {k: conv(x) for k, x in v.items()}
-        return v
 
-    return conv(dataclasses.asdict(cfg))
+def env_var_name(path: str) -> str:
+    """Environment variable of a dotted field path: ``zenoh.mode`` -> ``PSM_ZENOH__MODE``."""
+    return ENV_PREFIX + path.replace(".", ENV_NESTED_DELIMITER).upper()
+
+
+def config_to_dict(cfg: BaseModel) -> dict[str, Any]:
+    """A plain nested, JSON-able dict of a config (metadata snapshots, ``--print-config``)."""
+    return cfg.model_dump(mode="json")
+
+
+def field_defaults(cls: type[BaseModel]) -> dict[str, Any]:
+    """The default of every field of ``cls`` (for help texts that show them)."""
+    return {name: f.get_default(call_default_factory=True) for name, f in cls.model_fields.items()}
+
+
+@contextmanager
+def sources(data: Mapping[str, Any], env: Mapping[str, str] | None = None) -> Iterator[None]:
+    """Layer ``data`` (a parsed TOML document) and ``env`` under the init arguments of every
+    :class:`ServiceConfig` built inside the block (the stack validator uses this)."""
+    token = _SOURCES.set(_Sources(data, env))
+    try:
+        yield
+    finally:
+        _SOURCES.reset(token)
 
 
 # --------------------------------------------------------------------------------------------
@@ -492,7 +451,7 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
     ``--listen``, ``--multicast/--no-multicast``, ``--low-latency``, ``--log-level``,
     ``--set PATH=VALUE``."""
     g = parser.add_argument_group("bus configuration (flags override env vars override file)")
-    g.add_argument("--config", metavar="FILE.toml", help="TOML config file")
+    g.add_argument("--config", metavar="FILE.toml", help="TOML config or stack file")
     g.add_argument("--prefix", help="key-expression prefix (env PSM_PREFIX, default psm)")
     g.add_argument("--mode", choices=("peer", "client", "router"), help="zenoh mode")
     g.add_argument(

@@ -13,30 +13,27 @@ Example::
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass, field
 from typing import Any, TextIO
 
-from services.bus.config import ServiceConfig, meta, spec
+from pydantic import Field
+
+from services.bus.config import Section, ServiceConfig, StrList
 
 __all__ = ["EchoConfig", "EchoSection", "format_message", "run_echo"]
 
 
-@dataclass
-class EchoSection:
+class EchoSection(Section):
     """``[echo]`` section."""
 
-    key_exprs: list[str] = field(
-        default_factory=list, metadata=meta("key expressions (default <prefix>/**)")
-    )
-    quiet: bool = spec(False, "do not print messages, only count and check them")
-    max_bytes_field: int = spec(32, "print at most this many bytes of a bytes field", ge=0)
+    key_exprs: StrList = Field(default_factory=list, description="key expressions (default <prefix>/**)")
+    quiet: bool = Field(False, description="do not print messages, only count and check them")
+    max_bytes_field: int = Field(32, ge=0, description="print at most this many bytes of a bytes field")
 
 
-@dataclass
 class EchoConfig(ServiceConfig):
     """Echo service configuration."""
 
-    echo: EchoSection = field(default_factory=EchoSection)
+    echo: EchoSection = Field(default_factory=EchoSection)
 
 
 def format_message(key: str, msg: Any, max_bytes: int = 32) -> str:

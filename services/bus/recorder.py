@@ -37,11 +37,12 @@ import shutil
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-from services.bus.config import ServiceConfig, config_to_dict, meta, spec
+from pydantic import Field
+
+from services.bus.config import Section, ServiceConfig, StrList, config_to_dict
 from services.bus.messages import (
     ENCODING_PREFIX,
     MESSAGE_TYPES,
@@ -56,37 +57,39 @@ class RecorderError(RuntimeError):
     """The recorder cannot write its output (unwritable path, disk full, ...)."""
 
 
-@dataclass
-class RecorderSection:
+class RecorderSection(Section):
     """``[recorder]`` section."""
 
-    output: str = spec("", "output .mcap path (default out/recording-<UTC time>.mcap)")
-    key_exprs: list[str] = field(
-        default_factory=list, metadata=meta("key expressions to record (default <prefix>/**)")
+    output: str = Field("", description="output .mcap path (default out/recording-<UTC time>.mcap)")
+    key_exprs: StrList = Field(
+        default_factory=list,
+        description="key expressions to record (default <prefix>/**)",
     )
-    chunk_size: int = spec(256 * 1024, "MCAP chunk size, bytes", ge=1024, le=1 << 30)
-    compression: str = spec("zstd", "chunk compression", choices=("zstd", "lz4", "none"))
-    flush_interval_s: float = spec(
-        1.0, "close the open chunk at least this often, s (bounds loss on SIGKILL)", gt=0.0
+    chunk_size: int = Field(256 * 1024, ge=1024, le=1 << 30, description="MCAP chunk size, bytes")
+    compression: Literal['zstd', 'lz4', 'none'] = Field("zstd", description="chunk compression")
+    flush_interval_s: float = Field(
+        1.0, gt=0.0,
+        description="close the open chunk at least this often, s (bounds loss on SIGKILL)",
     )
-    split_size_mb: float = spec(0.0, "start a new file after this many MB (0 = never)", ge=0.0)
-    split_duration_s: float = spec(
-        0.0, "start a new file after this many seconds (0 = never)", ge=0.0
+    split_size_mb: float = Field(0.0, ge=0.0, description="start a new file after this many MB (0 = never)")
+    split_duration_s: float = Field(
+        0.0, ge=0.0,
+        description="start a new file after this many seconds (0 = never)",
     )
-    min_free_mb: float = spec(64.0, "refuse to start with less free disk space, MB", ge=0.0)
-    history: bool = spec(True, "fetch late-joiner history (latched goals, obstacles) at start")
-    queue_size: int = spec(
-        100_000, "samples buffered between Zenoh and the writer; when full, zenoh applies "
-        "back-pressure (nothing is dropped)", ge=1
+    min_free_mb: float = Field(64.0, ge=0.0, description="refuse to start with less free disk space, MB")
+    history: bool = Field(True, description="fetch late-joiner history (latched goals, obstacles) at start")
+    queue_size: int = Field(
+        100_000, ge=1,
+        description="samples buffered between Zenoh and the writer; when full, zenoh applies "
+        "back-pressure (nothing is dropped)",
     )
-    overwrite: bool = spec(False, "overwrite an existing output file")
+    overwrite: bool = Field(False, description="overwrite an existing output file")
 
 
-@dataclass
 class RecorderConfig(ServiceConfig):
     """Recorder service configuration."""
 
-    recorder: RecorderSection = field(default_factory=RecorderSection)
+    recorder: RecorderSection = Field(default_factory=RecorderSection)
 
 
 class _UnbufferedFile:

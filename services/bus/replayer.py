@@ -21,47 +21,43 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from services.bus.config import ConfigError, ServiceConfig, meta, spec
+from pydantic import Field
+
+from services.bus.config import ConfigError, Section, ServiceConfig, StrList
 from services.bus.log import _topic_matcher, read_samples
 
 __all__ = ["ReplayerConfig", "ReplayerSection", "remap_key", "run_replayer"]
 
 
-@dataclass
-class ReplayerSection:
+class ReplayerSection(Section):
     """``[replayer]`` section."""
 
-    files: list[str] = field(default_factory=list, metadata=meta("recordings to replay"))
-    speed: float = spec(1.0, "time scale (2 = twice as fast)", gt=0.0, le=1e6)
-    as_fast_as_possible: bool = spec(False, "ignore recorded timing")
-    topics: list[str] = field(
-        default_factory=list, metadata=meta("only these key expressions (default all)")
+    files: StrList = Field(default_factory=list, description="recordings to replay")
+    speed: float = Field(1.0, gt=0.0, le=1e6, description="time scale (2 = twice as fast)")
+    as_fast_as_possible: bool = Field(False, description="ignore recorded timing")
+    topics: StrList = Field(default_factory=list, description="only these key expressions (default all)")
+    exclude: StrList = Field(default_factory=list, description="drop these key expressions")
+    remap_prefix: str = Field("", description="OLD=NEW key prefix remap")
+    loop: bool = Field(False, description="repeat until stopped")
+    wait_subscribers_s: float = Field(
+        0.0, ge=0.0,
+        description="wait up to this long for a matching subscriber before sending, s",
     )
-    exclude: list[str] = field(
-        default_factory=list, metadata=meta("drop these key expressions")
-    )
-    remap_prefix: str = spec("", "OLD=NEW key prefix remap")
-    loop: bool = spec(False, "repeat until stopped")
-    wait_subscribers_s: float = spec(
-        0.0, "wait up to this long for a matching subscriber before sending, s", ge=0.0
-    )
-    max_loops: int = spec(0, "stop after this many loops with --loop (0 = unlimited)", ge=0)
+    max_loops: int = Field(0, ge=0, description="stop after this many loops with --loop (0 = unlimited)")
 
-
-@dataclass
-class ReplayerConfig(ServiceConfig):
-    """Replayer service configuration."""
-
-    replayer: ReplayerSection = field(default_factory=ReplayerSection)
-
-    def validate(self) -> None:
-        """Cross-field checks."""
-        super().validate()
-        rp = self.replayer.remap_prefix
+    def check(self) -> None:
+        """``remap_prefix`` is ``OLD=NEW``."""
+        rp = self.remap_prefix
         if rp:
             old, sep, new = rp.partition("=")
             if not sep or not old or not new:
-                raise ConfigError("replayer.remap_prefix", f"expected OLD=NEW, got {rp!r}")
+                raise ConfigError("remap_prefix", f"expected OLD=NEW, got {rp!r}")
+
+
+class ReplayerConfig(ServiceConfig):
+    """Replayer service configuration."""
+
+    replayer: ReplayerSection = Field(default_factory=ReplayerSection)
 
 
 def remap_key(key: str, remap: str) -> str:

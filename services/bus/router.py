@@ -1,43 +1,57 @@
 """``psm serve router``: a Zenoh router process (python ``zenoh`` in router mode).
 
 The local stack and docker compose share one topology: one router, every service connects to
-it as a peer or client (``--connect tcp/<router>:7447``, env ``PSM_ZENOH_CONNECT``). The router
-is itself a bus service: it holds a liveliness token and publishes its ServiceStatus.
-An access-control or other advanced zenoh setting goes in a JSON5 file given as
-``zenoh.config_file`` (``--set zenoh.config_file=configs/zenoh-router.json5``).
+it as a client (``[zenoh] connect``, env ``PSM_ZENOH__CONNECT``). The router reads the shared
+bus settings and its own ``[router]`` table (where it listens, which other routers it joins);
+it is itself a bus service: it holds a liveliness token and publishes its ServiceStatus. An
+access-control or other advanced zenoh setting goes in a JSON5 file given as
+``zenoh.config_file``.
 
 Example::
 
-    psm serve router --listen tcp/0.0.0.0:7447 --no-multicast
+    psm serve router --listen tcp/127.0.0.1:7447 --no-multicast
 """
 
 from __future__ import annotations
 
-import dataclasses
+from pydantic import Field
 
-from services.bus.config import ServiceConfig
+from services.bus.config import EndpointList, Section, ServiceConfig, ZenohConfig
 
-__all__ = ["DEFAULT_ROUTER_LISTEN", "router_config", "run_router"]
-
-#: Where the router listens when no ``listen`` endpoint is configured.
-DEFAULT_ROUTER_LISTEN = "tcp/0.0.0.0:7447"
+__all__ = ["RouterConfig", "RouterSection", "run_router"]
 
 
-def router_config(cfg: ServiceConfig) -> ServiceConfig:
-    """``cfg`` with ``zenoh.mode = router`` and a default listen endpoint."""
-    z = dataclasses.replace(
-        cfg.zenoh, mode="router", listen=list(cfg.zenoh.listen) or [DEFAULT_ROUTER_LISTEN]
+class RouterSection(Section):
+    """The ``[router]`` table."""
+
+    listen: EndpointList = Field(
+        default_factory=lambda: ["tcp/0.0.0.0:7447"], min_length=1,
+        description="endpoints the router listens on",
     )
-    return dataclasses.replace(cfg, zenoh=z)
+    connect: EndpointList = Field(
+        default_factory=list, description="other routers to join (a multi-router deployment)"
+    )
 
 
-def run_router(cfg: ServiceConfig) -> int:
+class RouterConfig(ServiceConfig):
+    """Config of ``psm serve router``: bus settings + ``[router]``."""
+
+    router: RouterSection = Field(default_factory=RouterSection)
+
+    def session_config(self) -> ZenohConfig:
+        """The zenoh settings of the router's own session: router mode on ``router.listen``."""
+        return self.zenoh.model_copy(
+            update={"mode": "router", "listen": list(self.router.listen),
+                    "connect": list(self.router.connect)}
+        )
+
+
+def run_router(cfg: RouterConfig) -> int:
     """Run the router until SIGINT/SIGTERM; returns the exit code."""
     from services.bus.runtime import Service
 
-    cfg = router_config(cfg)
-    svc = Service("router", cfg)
-    svc.log.info("router listening", extra={"listen": cfg.zenoh.listen,
-                                            "connect": cfg.zenoh.connect})
+    svc = Service("router", cfg, zenoh=cfg.session_config())
+    svc.log.info("router listening", extra={"listen": cfg.router.listen,
+                                            "connect": cfg.router.connect})
     svc.run()
     return 0

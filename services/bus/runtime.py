@@ -508,6 +508,7 @@ class Service:
         *,
         session: Any | None = None,
         version: str | None = None,
+        zenoh: ZenohConfig | None = None,
     ) -> None:
         from services.bus.messages import Keys
 
@@ -525,7 +526,7 @@ class Service:
         self._error_log = _RateLimiter(1.0)
         self._reject_log = _RateLimiter(1.0)
         self._own_session = session is None
-        self.session = session if session is not None else open_session(config.zenoh)
+        self.session = session if session is not None else open_session(zenoh or config.zenoh)
         self._subs: list[Subscription] = []
         self._pubs: list[TypedPublisher] = []
         self._on_close: list[Callable[[], None]] = []
@@ -539,7 +540,7 @@ class Service:
         self._last_counts: dict[str, int] = {}
         self.log.info(
             "session open",
-            extra={"zid": str(self.session.zid()), "mode": config.zenoh.mode,
+            extra={"zid": str(self.session.zid()), "mode": (zenoh or config.zenoh).mode,
                    "prefix": config.prefix, "version": self.version},
         )
 

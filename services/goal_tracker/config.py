@@ -1,6 +1,6 @@
 """Configuration of the goal tracker and the synthetic camera (``[goal_tracker.*]`` TOML tables).
 
-Loaded with :func:`services.bus.config.load_config` (file < ``PSM_GOAL_TRACKER_…`` environment
+Loaded with :func:`services.bus.config.load_config` (file < ``PSM_GOAL_TRACKER__…`` environment
 variables < ``--set goal_tracker.x.y=v`` flags); every bad value is a one-line ``ConfigError``.
 :func:`build_tracker` turns a validated config into the pure :class:`GoalTracker`.
 
@@ -23,10 +23,13 @@ Example file::
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
-from services.bus.config import ConfigError, ServiceConfig, meta, spec
+from pydantic import Field
+
+from services.bus.config import ConfigError, Section, ServiceConfig, Vec3
+from services.goal_tracker.detectors import PipelineParams
+from services.goal_tracker.kalman import KalmanParams
 
 if TYPE_CHECKING:
     from services.goal_tracker.geometry import FaceGeometry
@@ -51,43 +54,48 @@ __all__ = [
 _DEFAULT_F = 320.0 / math.tan(math.radians(30.0))  # 640 px wide, 60° horizontal field of view
 
 
-def _vec3(path: str, values: list[float], positive: bool = False) -> None:
-    if len(values) != 3:
-        raise ConfigError(path, f"expected 3 numbers, got {len(values)}")
-    if any(not math.isfinite(v) for v in values):
-        raise ConfigError(path, f"expected finite numbers, got {values}")
-    if positive and any(v <= 0 for v in values):
-        raise ConfigError(path, f"expected numbers > 0, got {values}")
-
-
-@dataclass
-class CameraSection:
+class CameraSection(Section):
     """``[goal_tracker.camera]``: where frames come from and the pinhole intrinsics."""
 
-    source: str = spec("synthetic", "frame source", choices=("synthetic", "device", "file", "url", "topic"))
-    device: int = spec(0, "camera device index (source = device)", ge=0)
-    uri: str = spec("", "video file path (source = file) or stream URL (source = url)")
-    camera_id: str = spec(
-        "cam0",
-        "camera id: images go to <prefix>/camera/<id>/image (source = topic: the id subscribed to)",
-        min_len=1,
+    source: Literal['synthetic', 'device', 'file', 'url', 'topic'] = Field(
+        "synthetic",
+        description="frame source",
     )
-    width: int = spec(640, "image width the intrinsics refer to, px", gt=0)
-    height: int = spec(480, "image height the intrinsics refer to, px", gt=0)
-    fx: float = spec(_DEFAULT_F, "focal length x, px", gt=0.0)
-    fy: float = spec(_DEFAULT_F, "focal length y, px", gt=0.0)
-    cx: float = spec(320.0, "principal point x, px")
-    cy: float = spec(240.0, "principal point y, px")
-    loop: bool = spec(False, "source = file: restart at the end instead of stopping")
-    realtime: bool = spec(True, "source = file: pace frames at the file's frame rate")
-    reconnect_initial_s: float = spec(0.5, "first reconnect delay after a dropped stream, s", gt=0.0)
-    reconnect_max_s: float = spec(5.0, "reconnect delay cap (exponential backoff), s", gt=0.0)
-    reconnect_give_up_s: float = spec(60.0, "give up after a stream is down this long, s (0 = never)", ge=0.0)
-    image_rate_hz: float = spec(5.0, "publish JPEG frames at most this often (frame time), 0 = never", ge=0.0)
-    jpeg_quality: int = spec(80, "JPEG quality of published frames", ge=1, le=100)
-    stall_timeout_s: float = spec(2.0, "no frame for this long (wall clock) -> goal invalid", gt=0.0)
+    device: int = Field(0, ge=0, description="camera device index (source = device)")
+    uri: str = Field("", description="video file path (source = file) or stream URL (source = url)")
+    camera_id: str = Field(
+        "cam0", min_length=1,
+        description="camera id: images go to <prefix>/camera/<id>/image (source = topic: the id subscribed "
+        "to)",
+    )
+    width: int = Field(640, gt=0, description="image width the intrinsics refer to, px")
+    height: int = Field(480, gt=0, description="image height the intrinsics refer to, px")
+    fx: float = Field(_DEFAULT_F, gt=0.0, description="focal length x, px")
+    fy: float = Field(_DEFAULT_F, gt=0.0, description="focal length y, px")
+    cx: float = Field(320.0, description="principal point x, px")
+    cy: float = Field(240.0, description="principal point y, px")
+    loop: bool = Field(False, description="source = file: restart at the end instead of stopping")
+    realtime: bool = Field(True, description="source = file: pace frames at the file's frame rate")
+    reconnect_initial_s: float = Field(
+        0.5, gt=0.0,
+        description="first reconnect delay after a dropped stream, s",
+    )
+    reconnect_max_s: float = Field(5.0, gt=0.0, description="reconnect delay cap (exponential backoff), s")
+    reconnect_give_up_s: float = Field(
+        60.0, ge=0.0,
+        description="give up after a stream is down this long, s (0 = never)",
+    )
+    image_rate_hz: float = Field(
+        5.0, ge=0.0,
+        description="publish JPEG frames at most this often (frame time), 0 = never",
+    )
+    jpeg_quality: int = Field(80, ge=1, le=100, description="JPEG quality of published frames")
+    stall_timeout_s: float = Field(
+        2.0, gt=0.0,
+        description="no frame for this long (wall clock) -> goal invalid",
+    )
 
-    def validate(self) -> None:
+    def check(self) -> None:
         """Cross-field checks."""
         if self.source in ("file", "url") and not self.uri:
             raise ConfigError("uri", f"source = {self.source!r} needs camera.uri")
@@ -95,150 +103,123 @@ class CameraSection:
             raise ConfigError("reconnect_max_s", "must be >= reconnect_initial_s")
 
 
-@dataclass
-class MountSection:
+class MountSection(Section):
     """``[goal_tracker.mount]``: camera → robot-base transform ``p_base = R p_cam + t``.
 
     ``R = Rz(yaw) Ry(pitch) Rx(roll)`` from ``rpy_deg``; the default is a camera 20 cm behind and
     50 cm above the base origin looking along the base +x axis.
     """
 
-    translation_m: list[float] = field(
-        default_factory=lambda: [-0.2, 0.0, 0.5], metadata=meta("camera origin in base, m")
+    translation_m: Vec3 = Field(
+        default_factory=lambda: [-0.2, 0.0, 0.5],
+        description="camera origin in base, m",
     )
-    rpy_deg: list[float] = field(
-        default_factory=lambda: [-90.0, 0.0, -90.0], metadata=meta("roll, pitch, yaw, degrees")
+    rpy_deg: Vec3 = Field(
+        default_factory=lambda: [-90.0, 0.0, -90.0],
+        description="roll, pitch, yaw, degrees",
     )
-    frame_id: str = spec("base", "frame of the published goal", min_len=1)
-
-    def validate(self) -> None:
-        """Vector lengths."""
-        _vec3("translation_m", self.translation_m)
-        _vec3("rpy_deg", self.rpy_deg)
+    frame_id: str = Field("base", min_length=1, description="frame of the published goal")
 
 
-@dataclass
-class FaceSection:
+class FaceSection(Section):
     """``[goal_tracker.face]``: face model and the goal offset."""
 
-    width_m: float = spec(0.16, "nominal face (detector box) width, m", gt=0.0, le=1.0)
-    offset_m: list[float] = field(
+    width_m: float = Field(0.16, gt=0.0, le=1.0, description="nominal face (detector box) width, m")
+    offset_m: Vec3 = Field(
         default_factory=lambda: [0.0, 0.045, 0.0],
-        metadata=meta(
-            "goal = face centre + this, camera frame (x right, y down, z forward), m; default: the mouth"
-        ),
+        description="goal = face centre + this, camera frame (x right, y down, z forward), m; default: the "
+        "mouth",
     )
 
-    def validate(self) -> None:
-        """Vector length."""
-        _vec3("offset_m", self.offset_m)
 
-
-@dataclass
-class DetectorSection:
+class DetectorSection(PipelineParams):
     """``[goal_tracker.detector]``: face detector and the speed knobs of the pipeline."""
 
-    kind: str = spec("haar", "face detector", choices=("haar", "yunet"))
-    model_path: str = spec(
+    kind: Literal['haar', 'yunet'] = Field("haar", description="face detector")
+    model_path: str = Field(
         "",
-        "model file: Haar XML (empty = OpenCV's default frontal face) or YuNet ONNX (required for yunet)",
+        description="model file: Haar XML (empty = OpenCV's default frontal face) or YuNet ONNX (required "
+        "for yunet)",
     )
-    detect_width: int = spec(320, "full detections run on the frame resized to this width, px", ge=64)
-    full_every: int = spec(10, "full detection at least every N frames (ROI tracking between)", ge=1)
-    min_face_px: int = spec(40, "smallest face width searched by a full detection, px", ge=8)
-    scale_factor: float = spec(1.1, "Haar scale step of full detections", gt=1.0, le=2.0)
-    fine_scale_factor: float = spec(1.1, "Haar scale step of ROI detections", gt=1.0, le=2.0)
-    min_neighbors: int = spec(4, "Haar minNeighbors", ge=0)
-    roi_margin: float = spec(2.2, "ROI side = predicted face size x this", ge=1.2)
-    roi_max_face_px: int = spec(
-        128, "faces wider than this are searched in an ROI at 1/2, 1/4... resolution, px", ge=48
-    )
-    score_threshold: float = spec(0.7, "YuNet score threshold", gt=0.0, lt=1.0)
+    scale_factor: float = Field(1.1, gt=1.0, le=2.0, description="Haar scale step of full detections")
+    fine_scale_factor: float = Field(1.1, gt=1.0, le=2.0, description="Haar scale step of ROI detections")
+    min_neighbors: int = Field(4, ge=0, description="Haar minNeighbors")
+    score_threshold: float = Field(0.7, gt=0.0, lt=1.0, description="YuNet score threshold")
 
-    def validate(self) -> None:
+    def check(self) -> None:
         """YuNet needs a model."""
         if self.kind == "yunet" and not self.model_path:
             raise ConfigError("model_path", "detector.kind = 'yunet' needs a YuNet ONNX model file")
 
 
-@dataclass
-class FilterSection:
+class FilterSection(KalmanParams):
     """``[goal_tracker.filter]``: Kalman filter, outlier gate, lost timeout, target selection."""
 
-    accel_psd: float = spec(0.5, "white-acceleration spectral density, m^2/s^3", ge=0.0)
-    initial_velocity_sigma: float = spec(0.5, "velocity 1-sigma at (re)start, m/s", gt=0.0)
-    gate_probability: float = spec(0.999, "chi-square gate probability (3 dof)", gt=0.0, lt=1.0)
-    max_consecutive_rejections: int = spec(5, "restart the filter after N rejections in a row", ge=1)
-    lost_timeout_s: float = spec(0.5, "no accepted face for this long (frame time) -> lost", gt=0.0)
-    pixel_sigma: list[float] = field(
+    pixel_sigma: Vec3 = Field(
         default_factory=lambda: [1.5, 1.5, 2.0],
-        metadata=meta("1-sigma noise of box centre u, v and width w, px"),
+        description="1-sigma noise of box centre u, v and width w, px",
     )
-    min_hits: int = spec(2, "frames a face must be seen before it can become the target", ge=1)
+    min_hits: int = Field(2, ge=1, description="frames a face must be seen before it can become the target")
 
-    def validate(self) -> None:
-        """Vector length."""
-        _vec3("pixel_sigma", self.pixel_sigma, positive=True)
+    def check(self) -> None:
+        """Noise levels are positive."""
+        if any(v <= 0 for v in self.pixel_sigma):
+            raise ConfigError("pixel_sigma", f"expected numbers > 0, got {self.pixel_sigma}")
 
 
-@dataclass
-class WorkspaceSection:
+class WorkspaceSection(Section):
     """``[goal_tracker.workspace]``: reachable box (base frame), optionally a spherical shell."""
 
-    lower_m: list[float] = field(default_factory=lambda: [0.2, -0.6, 0.0], metadata=meta("m"))
-    upper_m: list[float] = field(default_factory=lambda: [0.95, 0.6, 1.0], metadata=meta("m"))
-    centre_m: list[float] = field(
-        default_factory=lambda: [0.0, 0.0, 0.3], metadata=meta("centre of the shell, m")
-    )
-    min_radius_m: float = spec(0.0, "min distance from centre_m, m", ge=0.0)
-    max_radius_m: float = spec(0.0, "max distance from centre_m, m (0 = no limit)", ge=0.0)
+    lower_m: Vec3 = Field(default_factory=lambda: [0.2, -0.6, 0.0], description="m")
+    upper_m: Vec3 = Field(default_factory=lambda: [0.95, 0.6, 1.0], description="m")
+    centre_m: Vec3 = Field(default_factory=lambda: [0.0, 0.0, 0.3], description="centre of the shell, m")
+    min_radius_m: float = Field(0.0, ge=0.0, description="min distance from centre_m, m")
+    max_radius_m: float = Field(0.0, ge=0.0, description="max distance from centre_m, m (0 = no limit)")
 
-    def validate(self) -> None:
+    def check(self) -> None:
         """Bounds ordered."""
-        _vec3("lower_m", self.lower_m)
-        _vec3("upper_m", self.upper_m)
-        _vec3("centre_m", self.centre_m)
         if any(lo >= hi for lo, hi in zip(self.lower_m, self.upper_m, strict=True)):
             raise ConfigError("lower_m", f"must be < upper_m per axis, got {self.lower_m} vs {self.upper_m}")
         if self.max_radius_m and self.max_radius_m <= self.min_radius_m:
             raise ConfigError("max_radius_m", "must be > min_radius_m (or 0 = no limit)")
 
 
-@dataclass
-class SyntheticSection:
+class SyntheticSection(Section):
     """``[goal_tracker.synthetic]``: the synthetic camera (astronaut face on a known path)."""
 
-    fps: float = spec(30.0, "frame rate, Hz (frame k is the scene at t = k / fps)", gt=0.0, le=1000.0)
-    clock: str = spec(
+    fps: float = Field(
+        30.0, gt=0.0, le=1000.0,
+        description="frame rate, Hz (frame k is the scene at t = k / fps)",
+    )
+    clock: Literal["wall", "arm"] = Field(
         "wall",
-        "wall: pace with the wall clock; arm: frame times from the arm's "
+        description="wall: pace with the wall clock; arm: frame times from the arm's "
         "sim time (<prefix>/arm/state), for deterministic lockstep runs",
-        choices=("wall", "arm"),
     )
-    frames: int = spec(0, "stop after this many frames (0 = endless)", ge=0)
-    centre_m: list[float] = field(
-        default_factory=lambda: [0.0, 0.0, 0.9], metadata=meta("path centre, camera frame, m")
+    frames: int = Field(0, ge=0, description="stop after this many frames (0 = endless)")
+    centre_m: Vec3 = Field(
+        default_factory=lambda: [0.0, 0.0, 0.9],
+        description="path centre, camera frame, m",
     )
-    amplitude_m: list[float] = field(
-        default_factory=lambda: [0.15, 0.06, 0.15], metadata=meta("path amplitude per axis, m")
+    amplitude_m: Vec3 = Field(
+        default_factory=lambda: [0.15, 0.06, 0.15],
+        description="path amplitude per axis, m",
     )
-    frequency_hz: list[float] = field(
-        default_factory=lambda: [0.10, 0.13, 0.07], metadata=meta("path frequency per axis, Hz")
+    frequency_hz: Vec3 = Field(
+        default_factory=lambda: [0.10, 0.13, 0.07],
+        description="path frequency per axis, Hz",
     )
-    phase_rad: list[float] = field(
-        default_factory=lambda: [0.0, 0.5, 1.0], metadata=meta("path phase per axis, rad")
+    phase_rad: Vec3 = Field(default_factory=lambda: [0.0, 0.5, 1.0], description="path phase per axis, rad")
+    face_width_m: float = Field(0.16, gt=0.0, description="physical width of the synthetic face box, m")
+    hidden_s: list[list[float]] = Field(
+        default_factory=list,
+        description="time windows [[t0, t1], ...] (s) the face is hidden",
     )
-    face_width_m: float = spec(0.16, "physical width of the synthetic face box, m", gt=0.0)
-    hidden_s: list[list[float]] = field(
-        default_factory=list, metadata=meta("time windows [[t0, t1], ...] (s) the face is hidden")
-    )
-    noise_sigma: float = spec(2.0, "sensor noise, grey levels", ge=0.0)
-    seed: int = spec(0, "background / noise seed", ge=0)
+    noise_sigma: float = Field(2.0, ge=0.0, description="sensor noise, grey levels")
+    seed: int = Field(0, ge=0, description="background / noise seed")
 
-    def validate(self) -> None:
+    def check(self) -> None:
         """Vector lengths, path in front of the camera, windows ordered."""
-        for name in ("centre_m", "amplitude_m", "frequency_hz", "phase_rad"):
-            _vec3(name, getattr(self, name))
         if self.centre_m[2] - abs(self.amplitude_m[2]) <= 0.1:
             raise ConfigError("centre_m", "the path must stay > 0.1 m in front of the camera")
         for i, w in enumerate(self.hidden_s):
@@ -246,20 +227,19 @@ class SyntheticSection:
                 raise ConfigError(f"hidden_s[{i}]", f"expected [t0, t1] with t0 < t1, got {w}")
 
 
-@dataclass
-class GoalTrackerSection:
+class GoalTrackerSection(Section):
     """``[goal_tracker]``."""
 
-    goal_name: str = spec("person", "goal published on <prefix>/goals/<goal_name>", min_len=1)
-    camera: CameraSection = field(default_factory=CameraSection)
-    mount: MountSection = field(default_factory=MountSection)
-    face: FaceSection = field(default_factory=FaceSection)
-    detector: DetectorSection = field(default_factory=DetectorSection)
-    filter: FilterSection = field(default_factory=FilterSection)
-    workspace: WorkspaceSection = field(default_factory=WorkspaceSection)
-    synthetic: SyntheticSection = field(default_factory=SyntheticSection)
+    goal_name: str = Field("person", min_length=1, description="goal published on <prefix>/goals/<goal_name>")
+    camera: CameraSection = Field(default_factory=CameraSection)
+    mount: MountSection = Field(default_factory=MountSection)
+    face: FaceSection = Field(default_factory=FaceSection)
+    detector: DetectorSection = Field(default_factory=DetectorSection)
+    filter: FilterSection = Field(default_factory=FilterSection)
+    workspace: WorkspaceSection = Field(default_factory=WorkspaceSection)
+    synthetic: SyntheticSection = Field(default_factory=SyntheticSection)
 
-    def validate(self) -> None:
+    def check(self) -> None:
         """Key chunks are valid."""
         from services.bus.messages import InvalidKeyError, Keys
 
@@ -273,11 +253,10 @@ class GoalTrackerSection:
             raise ConfigError("camera.camera_id", str(exc)) from None
 
 
-@dataclass
 class TrackerConfig(ServiceConfig):
     """Goal tracker / synthetic camera service configuration."""
 
-    goal_tracker: GoalTrackerSection = field(default_factory=GoalTrackerSection)
+    goal_tracker: GoalTrackerSection = Field(default_factory=GoalTrackerSection)
 
 
 # --------------------------------------------------------------------------------------------
@@ -301,8 +280,7 @@ def build_tracker(sec: GoalTrackerSection) -> GoalTracker:
     """The pure :class:`~services.goal_tracker.tracker.GoalTracker` of a config.
 
     Raises ``FileNotFoundError`` when a configured model file is missing."""
-    from services.goal_tracker.detectors import DetectionPipeline, PipelineParams, make_detector
-    from services.goal_tracker.kalman import KalmanParams
+    from services.goal_tracker.detectors import DetectionPipeline, make_detector
     from services.goal_tracker.selection import TargetSelector
     from services.goal_tracker.tracker import GoalTracker
     from services.goal_tracker.workspace import Workspace
@@ -319,23 +297,10 @@ def build_tracker(sec: GoalTrackerSection) -> GoalTracker:
     else:
         detector = make_detector("yunet", d.model_path, score_threshold=d.score_threshold)
     pipeline = DetectionPipeline(
-        detector,
-        PipelineParams(
-            detect_width=d.detect_width,
-            full_every=d.full_every,
-            min_face_px=d.min_face_px,
-            roi_margin=d.roi_margin,
-            roi_max_face_px=d.roi_max_face_px,
-        ),
+        detector, PipelineParams(**d.model_dump(include=set(PipelineParams.model_fields)))
     )
     f = sec.filter
-    kalman = KalmanParams(
-        f.accel_psd,
-        f.initial_velocity_sigma,
-        f.gate_probability,
-        f.max_consecutive_rejections,
-        f.lost_timeout_s,
-    )
+    kalman = KalmanParams(**f.model_dump(include=set(KalmanParams.model_fields)))
     w = sec.workspace
     workspace = Workspace(
         tuple(w.lower_m),

@@ -16,8 +16,10 @@ from typing import Protocol
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from pydantic import ConfigDict, Field, field_validator
 
 from psm.errors import ParameterError
+from services.bus.config import Section
 from services.goal_tracker.selection import Detection, iou
 
 Image = NDArray[np.uint8]
@@ -146,39 +148,39 @@ def make_detector(kind: str, model_path: str | None = None, **kwargs: float) -> 
     raise ParameterError(f"detector.kind must be 'haar' or 'yunet', got {kind!r}")
 
 
-@dataclass(frozen=True)
-class PipelineParams:
-    """Speed/accuracy knobs of :class:`DetectionPipeline`.
+class PipelineParams(Section):
+    """Speed/accuracy knobs of :class:`DetectionPipeline` (part of ``[goal_tracker.detector]``)."""
 
-    Attributes:
-        detect_width: width (px) the frame is resized to for a full detection.
-        full_every: run a full detection at least every this many frames (to find new faces).
-        min_face_px: smallest face width (full-frame px) a full detection looks for.
-        roi_margin: the ROI is the predicted box grown by this factor (2.0 = twice the box size).
-        roi_max_face_px: in an ROI, larger faces are searched at 1/2, 1/4… resolution so that
-            the face is at most this wide (bounds the cost of close faces).
-        roi_size_range: (min, max) face width in an ROI relative to the predicted width.
-        max_refine: how many faces of a full detection get an ROI refinement (largest first).
-    """
+    model_config = ConfigDict(frozen=True)
 
-    detect_width: int = 320
-    full_every: int = 10
-    min_face_px: int = 40
-    roi_margin: float = 2.2
-    roi_max_face_px: int = 128
-    roi_size_range: tuple[float, float] = (0.6, 1.6)
-    max_refine: int = 3
+    detect_width: int = Field(
+        320, ge=64, description="full detections run on the frame resized to this width [px]"
+    )
+    full_every: int = Field(
+        10, ge=1, description="full detection at least every N frames (ROI tracking between)"
+    )
+    min_face_px: int = Field(
+        40, ge=8, description="smallest face width searched by a full detection [px]"
+    )
+    roi_margin: float = Field(2.2, ge=1.2, description="ROI side = predicted face size x this")
+    roi_max_face_px: int = Field(
+        128, ge=48,
+        description="faces wider than this are searched in an ROI at 1/2, 1/4... resolution [px]",
+    )
+    roi_size_range: tuple[float, float] = Field(
+        (0.6, 1.6), description="(min, max) face width in an ROI relative to the predicted width"
+    )
+    max_refine: int = Field(
+        3, ge=0, description="how many faces of a full detection get an ROI refinement"
+    )
 
-    def __post_init__(self) -> None:
-        if self.detect_width < 64 or self.full_every < 1 or self.min_face_px < 8:
-            raise ParameterError("pipeline needs detect_width >= 64, full_every >= 1, min_face_px >= 8")
-        if self.roi_margin < 1.2 or self.roi_max_face_px < 48 or self.max_refine < 0:
-            raise ParameterError("pipeline needs roi_margin >= 1.2, roi_max_face_px >= 48, max_refine >= 0")
-        lo, hi = self.roi_size_range
+    @field_validator("roi_size_range")
+    @classmethod
+    def _size_range(cls, value: tuple[float, float]) -> tuple[float, float]:
+        lo, hi = value
         if not 0.3 <= lo < 1.0 < hi <= 3.0:
-            raise ParameterError(
-                f"pipeline roi_size_range must satisfy 0.3 <= min < 1 < max <= 3, got {lo}, {hi}"
-            )
+            raise ValueError(f"must satisfy 0.3 <= min < 1 < max <= 3, got {lo}, {hi}")
+        return value
 
 
 @dataclass

@@ -12,14 +12,14 @@ replayed recording gives the same estimates.
 from __future__ import annotations
 
 import enum
-import math
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from pydantic import ConfigDict, Field
 from scipy.stats import chi2
 
 from psm.errors import ParameterError
+from services.bus.config import Section
 
 FloatArray = NDArray[np.float64]
 
@@ -33,38 +33,28 @@ class UpdateResult(enum.Enum):
     REINITIALISED = "reinitialised"  #: too many consecutive rejections: the target jumped
 
 
-@dataclass(frozen=True)
-class KalmanParams:
-    """Filter tuning.
+class KalmanParams(Section):
+    """Filter tuning (the tracker's ``[goal_tracker.filter]`` table)."""
 
-    Attributes:
-        accel_psd: q, white-acceleration spectral density (m²/s³).
-        initial_velocity_sigma: 1-σ of the velocity at initialisation (m/s).
-        gate_probability: chi-square (3 dof) probability of the Mahalanobis gate; a measurement
-            with d² above the quantile is rejected as an outlier.
-        max_consecutive_rejections: after this many rejections in a row the filter restarts from
-            the measurement (the face really moved, or the target changed).
-        lost_timeout_s: no accepted measurement for this long (frame time) → lost.
-    """
+    model_config = ConfigDict(frozen=True)
 
-    accel_psd: float = 0.5
-    initial_velocity_sigma: float = 0.5
-    gate_probability: float = 0.999
-    max_consecutive_rejections: int = 5
-    lost_timeout_s: float = 0.5
-
-    def __post_init__(self) -> None:
-        checks = {
-            "accel_psd": self.accel_psd >= 0,
-            "initial_velocity_sigma": self.initial_velocity_sigma > 0,
-            "gate_probability": 0 < self.gate_probability < 1,
-            "max_consecutive_rejections": self.max_consecutive_rejections >= 1,
-            "lost_timeout_s": self.lost_timeout_s > 0,
-        }
-        for name, ok in checks.items():
-            value = getattr(self, name)
-            if not ok or not math.isfinite(float(value)):
-                raise ParameterError(f"kalman.{name} is out of range: {value!r}")
+    accel_psd: float = Field(
+        0.5, ge=0.0, description="q, white-acceleration spectral density [m^2/s^3]"
+    )
+    initial_velocity_sigma: float = Field(
+        0.5, gt=0.0, description="velocity 1-sigma at (re)initialisation [m/s]"
+    )
+    gate_probability: float = Field(
+        0.999, gt=0.0, lt=1.0,
+        description="chi-square (3 dof) probability of the Mahalanobis gate; a measurement with "
+        "d^2 above the quantile is rejected as an outlier",
+    )
+    max_consecutive_rejections: int = Field(
+        5, ge=1, description="restart the filter from the measurement after N rejections in a row"
+    )
+    lost_timeout_s: float = Field(
+        0.5, gt=0.0, description="no accepted measurement for this long (frame time) -> lost [s]"
+    )
 
     @property
     def gate_d2(self) -> float:

@@ -130,7 +130,7 @@ def test_quaternion_roundtrip() -> None:
 
 @pytest.mark.parametrize("dt_ns", [2_000_000, 1_000_000])
 def test_constant_cartesian_acceleration_is_produced(robot: RobotModel, dt_ns: int) -> None:
-    sim = ArmSim(robot, ArmSimConfig(dt_ns=dt_ns, start_pose="ready"))
+    sim = ArmSim(robot, ArmSimConfig(dt_s=dt_ns * 1e-9, start_pose="ready"))
     a = np.array([0.4, -0.3, 0.5])
     start = sim.snapshot().ee.position
     T = 0.4
@@ -198,7 +198,7 @@ def test_joint_acceleration_mode(robot: RobotModel) -> None:
 
 
 def test_watchdog_brakes_to_zero_velocity(robot: RobotModel) -> None:
-    cfg = ArmSimConfig(start_pose="home", watchdog_timeout_ns=20_000_000)
+    cfg = ArmSimConfig(start_pose="home", watchdog_timeout_s=0.02)
     sim = ArmSim(robot, cfg)
     a = np.array([0.0, 1.0, 0.0])
     for _ in range(100):
@@ -314,7 +314,7 @@ def test_commands_in_flight_when_the_planner_is_lost_are_refused(robot: RobotMod
 def test_limits_never_exceeded_under_random_joint_commands(seed: int, scale: float, dt_ns: int):
     robot = _ROBOT
     rng = np.random.default_rng(seed)
-    sim = ArmSim(robot, ArmSimConfig(dt_ns=dt_ns, start_pose="home"))
+    sim = ArmSim(robot, ArmSimConfig(dt_s=dt_ns * 1e-9, start_pose="home"))
     lim = robot.limits
     ddq = rng.uniform(-1, 1, robot.n) * scale
     for k in range(400):

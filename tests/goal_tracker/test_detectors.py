@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+from pydantic import ValidationError
 
 from psm.errors import ParameterError
 from services.goal_tracker.detectors import (
@@ -63,5 +64,5 @@ def test_bad_detector_settings(tmp_path) -> None:
     bad.write_text("<opencv_storage></opencv_storage>")
     with pytest.raises(ParameterError, match="could not be loaded"):
         HaarDetector(str(bad))
-    with pytest.raises(ParameterError):
+    with pytest.raises(ValidationError, match="roi_size_range"):
         PipelineParams(roi_size_range=(1.2, 1.5))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 from scipy.linalg import solve_discrete_are
 
 from psm.errors import ParameterError
@@ -116,9 +117,9 @@ def test_time_never_runs_backwards() -> None:
 
 
 def test_bad_inputs() -> None:
-    with pytest.raises(ParameterError):
+    with pytest.raises(ValidationError, match="gate_probability"):
         KalmanParams(gate_probability=1.0)
-    with pytest.raises(ParameterError):
+    with pytest.raises(ValidationError, match="lost_timeout_s"):
         KalmanParams(lost_timeout_s=0.0)
     kf = ConstantVelocityKalman()
     with pytest.raises(ParameterError):

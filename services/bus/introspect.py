@@ -1,0 +1,199 @@
+"""Looking at a running bus: ``psm status`` (services alive on a prefix, with their status) and
+``psm topics`` (every live key with its type, rate and bandwidth) — what ``ros2 node list``,
+``ros2 topic list -v`` and ``ros2 topic hz`` give ROS users.
+
+Both join the bus as a plain session (no liveliness token of their own, nothing published).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+from services.bus.config import ServiceConfig
+
+__all__ = ["TopicStats", "collect_status", "collect_topics", "run_status", "run_topics"]
+
+
+def collect_status(session: Any, prefix: str, wait_s: float) -> tuple[set[str], dict[str, Any]]:
+    """The services alive on ``prefix`` (liveliness query) and the latest ServiceStatus of
+    each one heard within ``wait_s`` seconds."""
+    from services.bus.messages import Keys, ServiceStatus, decode
+
+    keys = Keys(prefix)
+    statuses: dict[str, Any] = {}
+    lock = threading.Lock()
+
+    def on_status(sample: Any) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes(), str(sample.encoding), ServiceStatus)
+        except ValueError:
+            return
+        with lock:
+            statuses[msg.service] = msg
+
+    sub = session.declare_subscriber(keys.status_all.key, on_status)
+    try:
+        base = keys.liveliness_all.key[:-1]
+        alive = set()
+        for reply in session.liveliness().get(keys.liveliness_all.key, timeout=min(wait_s, 2.0)):
+            ok = getattr(reply, "ok", None)
+            if ok is not None:
+                alive.add(str(ok.key_expr)[len(base):])
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            with lock:
+                if alive and alive <= set(statuses):
+                    break
+            time.sleep(0.05)
+    finally:
+        sub.undeclare()
+    with lock:
+        return alive, dict(statuses)
+
+
+def status_table(prefix: str, alive: set[str], statuses: dict[str, Any]) -> Any:
+    """A rich Table of the services."""
+    from rich.table import Table
+
+    from services.bus.messages import ServiceStatus
+
+    t = Table(title=f"services on {prefix}/ ({len(alive)} alive)")
+    for col in ("service", "alive", "state", "uptime s", "received", "published", "rejected",
+                "errors", "dropped", "version", "last error"):
+        t.add_column(col)
+    for name in sorted(alive | set(statuses)):
+        st = statuses.get(name)
+        if st is None:
+            t.add_row(name, "yes" if name in alive else "no", "(no status)", *[""] * 8)
+            continue
+        t.add_row(name, "yes" if name in alive else "no", ServiceStatus.State.Name(st.state),
+                  f"{st.uptime_s:.1f}", str(st.received), str(st.published), str(st.rejected),
+                  str(st.errors), str(st.dropped), st.version, st.last_error[:60])
+    return t
+
+
+def run_status(cfg: ServiceConfig, *, watch: bool = False, wait_s: float = 1.5) -> int:
+    """``psm status``: print the services alive on the prefix (exit 1 when none is)."""
+    from rich.console import Console
+
+    from services.bus.runtime import open_session
+
+    console = Console()
+    session = open_session(cfg.zenoh)
+    try:
+        while True:
+            alive, statuses = collect_status(session, cfg.prefix, wait_s)
+            table = status_table(cfg.prefix, alive, statuses)
+            if watch:
+                console.clear()
+            console.print(table)
+            if not watch:
+                return 0 if alive else 1
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        session.close()
+
+
+@dataclass
+class TopicStats:
+    """What was seen on one key during a window."""
+
+    key: str
+    encoding: str = ""
+    count: int = 0
+    bytes: int = 0
+    first_ns: int = 0
+    last_ns: int = 0
+    times: list[int] = field(default_factory=list)
+
+    def rate_hz(self, window_s: float) -> float:
+        """Messages per second: from the spacing of the samples when there are several."""
+        if self.count >= 3 and self.last_ns > self.first_ns:
+            return (self.count - 1) / ((self.last_ns - self.first_ns) * 1e-9)
+        return self.count / window_s
+
+    def bandwidth_bps(self, window_s: float) -> float:
+        """Bytes per second over the window."""
+        return self.bytes / window_s
+
+
+def collect_topics(session: Any, prefix: str, window_s: float) -> dict[str, TopicStats]:
+    """Listen to ``<prefix>/**`` for ``window_s`` seconds; returns the stats per key."""
+    from services.bus.messages import Keys
+
+    stats: dict[str, TopicStats] = {}
+    lock = threading.Lock()
+
+    def on_sample(sample: Any) -> None:
+        now = time.monotonic_ns()
+        key = str(sample.key_expr)
+        size = len(sample.payload)
+        with lock:
+            s = stats.get(key)
+            if s is None:
+                s = stats[key] = TopicStats(key, str(sample.encoding), first_ns=now)
+            s.count += 1
+            s.bytes += size
+            s.last_ns = now
+
+    sub = session.declare_subscriber(Keys(prefix).all.key, on_sample)
+    try:
+        time.sleep(window_s)
+    finally:
+        sub.undeclare()
+    with lock:
+        return dict(stats)
+
+
+def _type_of(encoding: str) -> str:
+    from services.bus.messages import ENCODING_PREFIX
+
+    return encoding.removeprefix(ENCODING_PREFIX).removeprefix("application/protobuf;")
+
+
+def _human_bytes(bps: float) -> str:
+    for unit in ("B/s", "KB/s", "MB/s"):
+        if bps < 1000 or unit == "MB/s":
+            return f"{bps:.1f} {unit}" if unit != "B/s" else f"{bps:.0f} {unit}"
+        bps /= 1000
+    return f"{bps:.1f} MB/s"
+
+
+def topics_table(prefix: str, stats: dict[str, TopicStats], window_s: float) -> Any:
+    """A rich Table of the keys seen."""
+    from rich.table import Table
+
+    t = Table(title=f"keys on {prefix}/** over {window_s:g} s")
+    for col in ("key", "type", "rate Hz", "bandwidth", "messages"):
+        t.add_column(col, justify="right" if col in ("rate Hz", "bandwidth", "messages") else "left")
+    for key in sorted(stats):
+        s = stats[key]
+        t.add_row(key, _type_of(s.encoding), f"{s.rate_hz(window_s):.1f}",
+                  _human_bytes(s.bandwidth_bps(window_s)), str(s.count))
+    return t
+
+
+def run_topics(cfg: ServiceConfig, *, window_s: float = 2.0, watch: bool = False) -> int:
+    """``psm topics``: print the live keys (exit 1 when nothing was heard)."""
+    from rich.console import Console
+
+    from services.bus.runtime import open_session
+
+    console = Console()
+    session = open_session(cfg.zenoh)
+    try:
+        while True:
+            stats = collect_topics(session, cfg.prefix, window_s)
+            if watch:
+                console.clear()
+            console.print(topics_table(cfg.prefix, stats, window_s))
+            if not watch:
+                return 0 if stats else 1
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        session.close()

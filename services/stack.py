@@ -1,0 +1,246 @@
+"""The stack file: one description of the whole dataflow (``configs/stack.toml``).
+
+A stack file is a service config file that every process of the stack reads: the shared bus
+settings at the top (``prefix``, ``clock``, ``[zenoh]``, logging), one table per service
+(``[router]``, ``[arm]``, ``[goal_tracker]``, ``[recorder]``, ...) and a ``[stack]`` table that
+says which processes run, in start order::
+
+    prefix = "psm"
+    clock = "realtime"
+    [zenoh]
+    mode = "client"
+    connect = ["tcp/127.0.0.1:7447"]
+    multicast = false
+
+    [[stack.processes]]
+    name = "router"
+    command = ["serve", "router"]
+    [[stack.processes]]
+    name = "arm"
+    command = ["arm"]
+
+    [router]
+    listen = ["tcp/127.0.0.1:7447"]
+    [arm]
+    dt_s = 0.002
+
+Each process is ``psm <command...> --config <stack file>``; it reads the shared keys and its own
+tables and ignores the others'. :func:`load_stack` validates the whole file at once: the
+``[stack]`` table, every process's own config (so a bad ``[arm]`` value is reported before
+anything starts) and that every table belongs to some process.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field
+
+from services.bus.config import (
+    ConfigError,
+    Section,
+    ServiceConfig,
+    StrList,
+    load_config,
+    read_toml,
+)
+
+__all__ = [
+    "COMMANDS",
+    "DEFAULT_STACK",
+    "ProcessSpec",
+    "Stack",
+    "StackConfig",
+    "StackSection",
+    "config_class",
+    "load_stack",
+]
+
+#: The stack the README's demo runs when no stack file is given.
+DEFAULT_STACK = Path(__file__).resolve().parents[1] / "configs" / "stack.toml"
+
+
+def _router_config() -> type[ServiceConfig]:
+    from services.bus.router import RouterConfig
+
+    return RouterConfig
+
+
+def _arm_config() -> type[ServiceConfig]:
+    from services.arm.config import ArmConfig
+
+    return ArmConfig
+
+
+def _tracker_config() -> type[ServiceConfig]:
+    from services.goal_tracker.config import TrackerConfig
+
+    return TrackerConfig
+
+
+def _recorder_config() -> type[ServiceConfig]:
+    from services.bus.recorder import RecorderConfig
+
+    return RecorderConfig
+
+
+def _replayer_config() -> type[ServiceConfig]:
+    from services.bus.replayer import ReplayerConfig
+
+    return ReplayerConfig
+
+
+def _echo_config() -> type[ServiceConfig]:
+    from services.bus.echo import EchoConfig
+
+    return EchoConfig
+
+
+def _probe_config() -> type[ServiceConfig]:
+    return ServiceConfig
+
+
+@dataclass(frozen=True)
+class Command:
+    """A ``psm`` sub-command that can run in a stack: its config model and the name of the
+    liveliness token it declares (``None``: the process's name)."""
+
+    config: Any  #: () -> type[ServiceConfig], imported lazily
+    service: str | None = None
+
+
+#: The sub-commands a stack can run, by their words after ``psm``.
+COMMANDS: dict[tuple[str, ...], Command] = {
+    ("serve", "router"): Command(_router_config, "router"),
+    ("arm",): Command(_arm_config, "arm"),
+    ("arm", "probe"): Command(_probe_config),
+    ("camera", "synth"): Command(_tracker_config, "camera_synth"),
+    ("track",): Command(_tracker_config, "goal_tracker"),
+    ("record",): Command(_recorder_config, "recorder"),
+    ("replay",): Command(_replayer_config, "replayer"),
+    ("echo",): Command(_echo_config, "echo"),
+}
+
+
+def _command_of(argv: Sequence[str]) -> tuple[tuple[str, ...], Command]:
+    """The longest registered command that ``argv`` starts with."""
+    for n in (2, 1):
+        words = tuple(argv[:n])
+        if words in COMMANDS:
+            return words, COMMANDS[words]
+    known = ", ".join(" ".join(k) for k in COMMANDS)
+    raise ValueError(f"{' '.join(argv)!r} is not a stack command (known: {known})")
+
+
+def config_class(argv: Sequence[str]) -> type[ServiceConfig]:
+    """The config model of the process ``psm <argv...>``."""
+    return _command_of(argv)[1].config()
+
+
+class ProcessSpec(Section):
+    """One process of the stack (an entry of ``[[stack.processes]]``)."""
+
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z0-9_\-]+$", description="process name (logs, table)")
+    command: StrList = Field(
+        min_length=1, description="the psm sub-command and its own flags, e.g. ['track', '--source', 'topic']"
+    )
+    service: str = Field(
+        "", description="liveliness name the process declares ('' = the command's, else the name)"
+    )
+    enabled: bool = Field(True, description="false: described but not started")
+
+    def check(self) -> None:
+        """The command is one a stack can run."""
+        try:
+            _command_of(self.command)
+        except ValueError as exc:
+            raise ConfigError("command", str(exc)) from None
+
+    @property
+    def service_name(self) -> str:
+        """The liveliness token name the supervisor waits for."""
+        return self.service or _command_of(self.command)[1].service or self.name
+
+
+class StackSection(Section):
+    """The ``[stack]`` table."""
+
+    name: str = Field("local", min_length=1, description="name of the stack (logs, summary)")
+    processes: list[ProcessSpec] = Field(min_length=1, description="processes, in start order")
+    startup_timeout_s: float = Field(
+        30.0, gt=0.0, le=600.0, description="wait this long for each process's liveliness token [s]"
+    )
+    stop_timeout_s: float = Field(
+        10.0, gt=0.0, le=600.0, description="after SIGTERM, wait this long before SIGKILL [s]"
+    )
+    run_dir: str = Field("out/stack", description="process logs go to <run_dir>/<name>.log")
+
+    def check(self) -> None:
+        """Process names are unique."""
+        seen: set[str] = set()
+        for i, p in enumerate(self.processes):
+            if p.name in seen:
+                raise ConfigError(f"processes[{i}].name", f"duplicate process name {p.name!r}")
+            seen.add(p.name)
+
+
+class StackConfig(ServiceConfig):
+    """The supervisor's view of a stack file: the shared settings + ``[stack]``."""
+
+    stack: StackSection
+
+
+@dataclass
+class Stack:
+    """A validated stack file: the supervisor's config, the file, the processes to start and
+    each one's config (the stack file as that process will read it)."""
+
+    path: Path
+    config: StackConfig
+    processes: list[ProcessSpec]
+    configs: dict[str, ServiceConfig]
+
+
+def _overrides_for(cls: type[ServiceConfig], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """The overrides that address fields of ``cls`` (the others belong to other processes)."""
+    return {k: v for k, v in overrides.items() if k.split(".", 1)[0] in cls.model_fields}
+
+
+def load_stack(
+    path: str | Path,
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    env: Mapping[str, str] | None = None,
+) -> Stack:
+    """Load and validate a stack file (raises :class:`ConfigError` naming the process and the
+    field). ``overrides`` (dotted path -> value) apply to every process that has the field."""
+    path = Path(path)
+    overrides = dict(overrides or {})
+    config = load_config(StackConfig, path, overrides=_overrides_for(StackConfig, overrides), env=env)
+    unknown_override = [
+        k for k in overrides
+        if not any(k.split(".", 1)[0] in cls.model_fields
+                   for cls in [StackConfig, *(config_class(p.command) for p in config.stack.processes)])
+    ]
+    if unknown_override:
+        raise ConfigError(unknown_override[0], "unknown field for every process of the stack")
+    data = read_toml(path)
+    processes = [p for p in config.stack.processes if p.enabled]
+    configs: dict[str, ServiceConfig] = {}
+    owned: set[str] = set(StackConfig.model_fields)
+    for p in config.stack.processes:
+        cls = config_class(p.command)
+        owned |= set(cls.model_fields)
+        if not p.enabled:
+            continue
+        try:
+            configs[p.name] = load_config(cls, path, overrides=_overrides_for(cls, overrides), env=env)
+        except ConfigError as exc:
+            raise ConfigError(f"{p.name}: {exc.path}" if exc.path else p.name, exc.reason) from None
+    for key, value in data.items():
+        if isinstance(value, dict) and key not in owned:
+            raise ConfigError(key, "no process of the stack reads this table")
+    return Stack(path, config, processes, configs)

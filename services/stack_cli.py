@@ -1,0 +1,92 @@
+"""``psm up`` (run a stack), ``psm status`` (services alive on a prefix) and ``psm topics``
+(live keys with type, rate and bandwidth)."""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+__all__ = ["register"]
+
+
+def _cmd_up(args: argparse.Namespace) -> int:
+    from services.bus.config import ConfigError, env_var_name, parse_override
+    from services.stack import DEFAULT_STACK, load_stack
+    from services.supervisor import run_stack
+
+    overrides: dict[str, Any] = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError("", f"--set expects PATH=VALUE, got {item!r}")
+        overrides[key.strip()] = value
+    if args.clock:
+        overrides["clock"] = args.clock
+    if args.record:
+        overrides["recorder.output"] = args.record
+    parsed = {k: parse_override(v) for k, v in overrides.items()}
+    stack = load_stack(args.stack or DEFAULT_STACK, overrides=parsed)
+    if args.record and "recorder" not in stack.configs:
+        raise ConfigError("recorder", "--record needs a recorder process in the stack")
+    env = {env_var_name(k): v for k, v in overrides.items()}
+    if args.check:
+        print(f"{stack.path}: valid; processes: {', '.join(p.name for p in stack.processes)}")
+        return 0
+    return run_stack(stack, duration_s=args.duration, env_overrides=env, live=args.live)
+
+
+def _cmd_status(args: argparse.Namespace) -> int:
+    from services.bus.config import ServiceConfig, config_from_args
+    from services.bus.introspect import run_status
+
+    return run_status(config_from_args(ServiceConfig, args), watch=args.watch, wait_s=args.wait)
+
+
+def _cmd_topics(args: argparse.Namespace) -> int:
+    from services.bus.config import ServiceConfig, config_from_args
+    from services.bus.introspect import run_topics
+
+    return run_topics(config_from_args(ServiceConfig, args), window_s=args.window, watch=args.watch)
+
+
+def register(subparsers: Any) -> None:
+    """Add ``up``, ``status`` and ``topics``."""
+    from services.bus.config import add_config_arguments
+
+    p = subparsers.add_parser(
+        "up", help="run a stack: every process of a stack file, supervised",
+        description="Start every process of the stack file (default configs/stack.toml) in "
+        "order, wait for each one's liveliness token, show a live status table, and stop them "
+        "in reverse order on Ctrl-C, SIGTERM or --duration, with a summary.",
+    )
+    p.add_argument("stack", nargs="?", metavar="STACK.toml", help="stack file (default configs/stack.toml)")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (wall clock)")
+    p.add_argument("--clock", choices=("lockstep", "realtime"), help="the stack's clock")
+    p.add_argument("--record", metavar="FILE.mcap", help="the recorder writes to FILE.mcap")
+    p.add_argument("--set", action="append", default=[], metavar="PATH=VALUE",
+                   help="override a field for every process that has it, e.g. --set arm.dt_s=0.001")
+    p.add_argument("--live", action=argparse.BooleanOptionalAction, default=None,
+                   help="live status table (default: when stdout is a terminal)")
+    p.add_argument("--check", action="store_true", help="validate the stack file and exit")
+    p.set_defaults(func=_cmd_up)
+
+    s = subparsers.add_parser(
+        "status", help="services alive on a prefix and their status",
+        description="List the services whose liveliness token is declared on the prefix, with "
+        "their latest ServiceStatus (state, uptime, counters, last error).",
+    )
+    s.add_argument("--watch", action="store_true", help="refresh until Ctrl-C")
+    s.add_argument("--wait", type=float, default=1.5, metavar="S",
+                   help="how long to listen for status messages (default 1.5 s)")
+    add_config_arguments(s)
+    s.set_defaults(func=_cmd_status)
+
+    t = subparsers.add_parser(
+        "topics", help="live keys with type, rate and bandwidth",
+        description="Listen to <prefix>/** for a window and list every key seen with its message "
+        "type, rate (Hz) and bandwidth.",
+    )
+    t.add_argument("--window", type=float, default=2.0, metavar="S", help="listening window (default 2 s)")
+    t.add_argument("--watch", action="store_true", help="refresh until Ctrl-C")
+    add_config_arguments(t)
+    t.set_defaults(func=_cmd_topics)

@@ -1,0 +1,520 @@
+"""The supervisor: starts the processes of a stack, watches them, stops them (``psm up``).
+
+:class:`ManagedProcess` is one ``psm <command...>`` child: its own process group, output to a
+log file, stopped by its PID (SIGTERM, then SIGKILL of the group after a bounded wait), and
+bound to the supervisor's life: the child asks the kernel for SIGTERM when its parent dies
+(``PR_SET_PDEATHSIG``, set by the ``psm`` entry point when ``PSM_SUPERVISOR_PID`` is in its
+environment), so no process of a stack outlives a supervisor that was killed with SIGKILL.
+Tests and benchmarks start their processes with the same class.
+
+:class:`Supervisor` runs a :class:`~services.stack.Stack`: it starts the processes in order and
+waits for each one's liveliness token (``startup_timeout_s``), shows a live status table while
+they run (state, message rates, CPU %, rejected counts, last error), and on SIGINT / SIGTERM /
+the end of ``duration`` stops them in reverse order and prints a summary. A process that fails
+to start or dies is reported with the tail of its log and the whole stack shuts down.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TextIO
+
+from services.stack import Stack
+
+__all__ = [
+    "SUPERVISOR_PID_ENV",
+    "ManagedProcess",
+    "StackFailureError",
+    "Supervisor",
+    "bind_to_supervisor",
+    "free_port",
+    "psm_argv",
+]
+
+#: Set in every child's environment: the supervisor's PID (the child dies with it).
+SUPERVISOR_PID_ENV = "PSM_SUPERVISOR_PID"
+_PR_SET_PDEATHSIG = 1
+_CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+def bind_to_supervisor() -> None:
+    """In a child of a supervisor (``PSM_SUPERVISOR_PID`` set): ask for SIGTERM when the
+    parent dies, and exit at once if it already has. A no-op elsewhere."""
+    expected = os.environ.get(SUPERVISOR_PID_ENV)
+    if not expected or not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
+    if str(os.getppid()) != expected:  # the supervisor died before prctl took effect
+        os._exit(1)
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def psm_argv(command: Sequence[str]) -> list[str]:
+    """The argv that runs ``psm <command...>`` with this interpreter."""
+    return [sys.executable, "-m", "services.cli", *command]
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a process [s] (``None`` once it is gone)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            fields = fh.read().rsplit(b")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / _CLK_TCK
+
+
+class ManagedProcess:
+    """One child process: own process group, output in ``log_path``, stopped by PID."""
+
+    def __init__(
+        self,
+        name: str,
+        argv: Sequence[str],
+        log_path: Path,
+        *,
+        env: Mapping[str, str] | None = None,
+        cwd: str | Path | None = None,
+    ) -> None:
+        self.name = name
+        self.argv = list(argv)
+        self.log_path = Path(log_path)
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        full_env = dict(os.environ if env is None else env)
+        full_env[SUPERVISOR_PID_ENV] = str(os.getpid())
+        full_env.setdefault("PYTHONUNBUFFERED", "1")
+        full_env.setdefault("RUST_LOG", "error")
+        root = str(Path(__file__).resolve().parents[1])
+        full_env["PYTHONPATH"] = root + os.pathsep + full_env.get("PYTHONPATH", "")
+        self._log = self.log_path.open("wb")
+        self.started = time.monotonic()
+        self.ended: float | None = None
+        self.popen = subprocess.Popen(
+            self.argv,
+            stdin=subprocess.DEVNULL,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+            env=full_env,
+            cwd=cwd or root,
+            start_new_session=True,
+        )
+        self.pid = self.popen.pid
+
+    def alive(self) -> bool:
+        """True while the process runs."""
+        return self.popen.poll() is None
+
+    @property
+    def returncode(self) -> int | None:
+        """The exit code (``-N``: killed by signal N), ``None`` while running."""
+        return self.popen.poll()
+
+    def uptime_s(self) -> float:
+        """Seconds since start (until exit once it has ended)."""
+        end = self.ended if self.ended is not None else time.monotonic()
+        return end - self.started
+
+    def log_text(self) -> str:
+        """The process's output so far."""
+        self._log.flush()
+        try:
+            return self.log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+
+    def log_tail(self, lines: int = 12) -> str:
+        """The last ``lines`` lines of the output."""
+        return "\n".join(self.log_text().rstrip().splitlines()[-lines:])
+
+    def signal(self, sig: int) -> None:
+        """Send ``sig`` to the process (by PID) if it runs."""
+        if self.alive():
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.pid, sig)
+
+    def wait(self, timeout_s: float) -> int | None:
+        """Wait up to ``timeout_s`` for the exit; returns the exit code or ``None``."""
+        try:
+            rc = self.popen.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            return None
+        self._mark_ended()
+        return rc
+
+    def _mark_ended(self) -> None:
+        if self.ended is None:
+            self.ended = time.monotonic()
+
+    def stop(self, timeout_s: float = 10.0) -> int:
+        """SIGTERM, wait up to ``timeout_s``, then SIGKILL the process group; always reaps.
+        Returns the exit code."""
+        try:
+            self.signal(signal.SIGTERM)
+            rc = self.wait(timeout_s)
+            if rc is None:
+                with contextlib.suppress(ProcessLookupError, PermissionError):
+                    os.killpg(self.pid, signal.SIGKILL)
+                rc = self.popen.wait(timeout=10)
+            self._mark_ended()
+            # Anything the child left in its group (it starts none) goes with it.
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(self.pid, signal.SIGKILL)
+            return int(rc)
+        finally:
+            self._log.close()
+
+
+class StackFailureError(RuntimeError):
+    """A process of the stack failed to start or died; the message has its log's tail."""
+
+
+@dataclass
+class _Row:
+    """What the table shows of one process."""
+
+    name: str
+    service: str
+    proc: ManagedProcess
+    status: Any = None  #: the latest ServiceStatus
+    status_at: float = 0.0
+    rate_base: tuple[float, int, int] | None = None  #: (time, received, published)
+    rates: tuple[float, float] = (0.0, 0.0)  #: (received/s, published/s)
+    cpu_base: tuple[float, float] | None = None  #: (wall time, cpu seconds)
+    cpu_pct: float = 0.0
+    alive_token: bool = False
+
+
+@dataclass
+class Summary:
+    """The end of a stack run."""
+
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    recording: str = ""
+    reason: str = ""
+    ok: bool = True
+
+
+class Supervisor:
+    """Runs a :class:`~services.stack.Stack` (see the module docstring)."""
+
+    def __init__(
+        self,
+        stack: Stack,
+        *,
+        env_overrides: Mapping[str, str] | None = None,
+        extra_args: Mapping[str, Sequence[str]] | None = None,
+        out: TextIO | None = None,
+        live: bool | None = None,
+    ) -> None:
+        self.stack = stack
+        self.cfg = stack.config
+        self.run_dir = Path(self.cfg.stack.run_dir)
+        self.env = {**os.environ, **(env_overrides or {})}
+        self.extra_args = {k: list(v) for k, v in (extra_args or {}).items()}
+        self.out = out or sys.stdout
+        self.live = self.out.isatty() if live is None else live
+        self.rows: list[_Row] = []
+        self.session: Any = None
+        self._lock = threading.Lock()
+        self._alive: set[str] = set()
+        self.stop_event = threading.Event()
+        self._stop_reason = ""
+
+    # ------------------------------------------------------------------ start
+    def _say(self, text: str) -> None:
+        print(text, file=self.out, flush=True)
+
+    def _open_session(self) -> None:
+        from services.bus.messages import Keys, ServiceStatus, decode
+        from services.bus.runtime import open_session
+
+        self.session = open_session(self.cfg.zenoh)
+        keys = Keys(self.cfg.prefix)
+        base = keys.liveliness_all.key[:-1]
+
+        def on_token(sample: Any) -> None:
+            import zenoh
+
+            name = str(sample.key_expr)[len(base):]
+            with self._lock:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    self._alive.add(name)
+                else:
+                    self._alive.discard(name)
+
+        def on_status(sample: Any) -> None:
+            try:
+                msg = decode(sample.payload.to_bytes(), str(sample.encoding), ServiceStatus)
+            except ValueError:
+                return
+            now = time.monotonic()
+            with self._lock:
+                for row in self.rows:
+                    if row.service == msg.service:
+                        row.status, row.status_at = msg, now
+                        counts = (now, int(msg.received), int(msg.published))
+                        if row.rate_base is not None and now - row.rate_base[0] >= 0.5:
+                            dt = now - row.rate_base[0]
+                            row.rates = ((counts[1] - row.rate_base[1]) / dt,
+                                         (counts[2] - row.rate_base[2]) / dt)
+                            row.rate_base = counts
+                        elif row.rate_base is None:
+                            row.rate_base = counts
+
+        self._token_sub = self.session.liveliness().declare_subscriber(
+            keys.liveliness_all.key, on_token, history=True
+        )
+        self._status_sub = self.session.declare_subscriber(keys.status_all.key, on_status)
+
+    def _router_endpoint(self, name: str) -> tuple[str, int] | None:
+        cfg = self.stack.configs[name]
+        router = getattr(cfg, "router", None)
+        if router is None:
+            return None
+        proto, _, rest = router.listen[0].partition("/")
+        host, _, port = rest.rpartition(":")
+        if proto != "tcp" or not port.isdigit():
+            return None
+        host = "127.0.0.1" if host in ("0.0.0.0", "[::]", "") else host.strip("[]")
+        return host, int(port)
+
+    def _wait_ready(self, row: _Row) -> None:
+        timeout = self.cfg.stack.startup_timeout_s
+        deadline = time.monotonic() + timeout
+        endpoint = self._router_endpoint(row.name) if self.session is None else None
+        while time.monotonic() < deadline:
+            for other in self.rows:
+                if not other.proc.alive():
+                    raise StackFailureError(self._died(other, "exited during start-up"))
+            if self.stop_event.is_set():
+                raise StackFailureError(self._stop_reason or "stopped during start-up")
+            if self.session is None and endpoint is not None:
+                with socket.socket() as s:
+                    s.settimeout(0.2)
+                    if s.connect_ex(endpoint) == 0:
+                        self._open_session()
+            if self.session is not None:
+                with self._lock:
+                    if row.service in self._alive:
+                        row.alive_token = True
+                        return
+            time.sleep(0.05)
+        raise StackFailureError(
+            self._died(row, f"did not declare its liveliness token '{row.service}' within {timeout:g} s")
+        )
+
+    def _died(self, row: _Row, what: str) -> str:
+        rc = row.proc.returncode
+        code = "" if rc is None else f" (exit code {rc})"
+        tail = row.proc.log_tail()
+        return f"{row.name} {what}{code}; last lines of {row.proc.log_path}:\n{tail}"
+
+    def start(self) -> None:
+        """Start every process in order, each after the previous one is alive."""
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if not any(self._router_endpoint(p.name) for p in self.stack.processes):
+            self._open_session()
+        config = str(self.stack.path.resolve())
+        for spec in self.stack.processes:
+            endpoint = self._router_endpoint(spec.name)
+            if endpoint is not None:
+                with socket.socket() as s:
+                    s.settimeout(0.2)
+                    if s.connect_ex(endpoint) == 0:
+                        raise StackFailureError(
+                            f"{spec.name}: tcp/{endpoint[0]}:{endpoint[1]} is already in use "
+                            "(another router running?)"
+                        )
+            argv = psm_argv([*spec.command, "--config", config, *self.extra_args.get(spec.name, [])])
+            proc = ManagedProcess(spec.name, argv, self.run_dir / f"{spec.name}.log", env=self.env)
+            row = _Row(spec.name, spec.service_name, proc)
+            with self._lock:
+                self.rows.append(row)
+            self._wait_ready(row)
+            if not self.live:
+                self._say(f"started {spec.name} (pid {proc.pid})")
+
+    # ------------------------------------------------------------------ run
+    def _check_children(self) -> None:
+        for row in self.rows:
+            if not row.proc.alive():
+                raise StackFailureError(self._died(row, "died"))
+
+    def _update_cpu(self) -> None:
+        now = time.monotonic()
+        for row in self.rows:
+            cpu = cpu_seconds(row.proc.pid)
+            if cpu is None:
+                continue
+            if row.cpu_base is not None and now - row.cpu_base[0] > 0.2:
+                row.cpu_pct = 100.0 * (cpu - row.cpu_base[1]) / (now - row.cpu_base[0])
+            row.cpu_base = (now, cpu)
+
+    def table(self) -> Any:
+        """The live status table (a ``rich`` Table)."""
+        from rich.table import Table
+
+        from services.bus.messages import ServiceStatus
+
+        c = self.cfg
+        t = Table(title=f"stack {c.stack.name} · prefix {c.prefix} · clock {c.clock}")
+        numeric = ("pid", "in/s", "out/s", "CPU %", "rejected", "errors")
+        for col in ("service", "pid", *numeric[1:], "state", "last error"):
+            t.add_column(col, justify="right" if col in numeric else "left")
+        with self._lock:
+            for row in self.rows:
+                st = row.status
+                state = ServiceStatus.State.Name(st.state) if st is not None else "STARTING"
+                if not row.proc.alive():
+                    state = f"EXITED {row.proc.returncode}"
+                t.add_row(
+                    row.name, str(row.proc.pid),
+                    f"{row.rates[0]:.0f}", f"{row.rates[1]:.0f}", f"{row.cpu_pct:.0f}",
+                    str(st.rejected) if st else "-", str(st.errors) if st else "-",
+                    state, (st.last_error[:60] if st else ""),
+                )
+        return t
+
+    def run(self, duration_s: float | None = None) -> None:
+        """Watch the stack until ``duration_s`` (``None``: until a signal or :meth:`stop`)."""
+        deadline = None if duration_s is None else time.monotonic() + duration_s
+
+        def remaining() -> float:
+            return 0.5 if deadline is None else max(0.0, min(0.5, deadline - time.monotonic()))
+
+        if self.live:
+            from rich.console import Console
+            from rich.live import Live
+
+            with Live(self.table(), console=Console(file=self.out), refresh_per_second=2) as live:
+                while not self.stop_event.wait(remaining()):
+                    self._update_cpu()
+                    self._check_children()
+                    live.update(self.table())
+                    if deadline is not None and time.monotonic() >= deadline:
+                        break
+        else:
+            while not self.stop_event.wait(remaining()):
+                self._update_cpu()
+                self._check_children()
+                if deadline is not None and time.monotonic() >= deadline:
+                    break
+
+    def stop(self, reason: str = "") -> None:
+        """Ask :meth:`run` to return (thread- and signal-safe)."""
+        self._stop_reason = self._stop_reason or reason
+        self.stop_event.set()
+
+    # ------------------------------------------------------------------ stop
+    def shutdown(self) -> Summary:
+        """Stop the processes in reverse order; returns the summary."""
+        summary = Summary()
+        timeout = self.cfg.stack.stop_timeout_s
+        codes: dict[str, int] = {}
+        for row in reversed(self.rows):
+            codes[row.name] = row.proc.stop(timeout)
+        for row in self.rows:
+            st = row.status
+            summary.rows.append({
+                "service": row.name,
+                "pid": row.proc.pid,
+                "uptime_s": round(row.proc.uptime_s(), 2),
+                "received": int(st.received) if st else None,
+                "published": int(st.published) if st else None,
+                "rejected": int(st.rejected) if st else None,
+                "errors": int(st.errors) if st else None,
+                "exit_code": codes[row.name],
+                "log": str(row.proc.log_path),
+            })
+        rec = getattr(self.stack.configs.get("recorder"), "recorder", None)
+        if rec is not None and "recorder" in codes:
+            summary.recording = rec.output
+        if self.session is not None:
+            with contextlib.suppress(Exception):
+                self.session.close()
+        return summary
+
+    def print_summary(self, summary: Summary) -> None:
+        """Print the per-process summary (and where the recording is)."""
+        from rich.console import Console
+        from rich.table import Table
+
+        t = Table(title=f"stack {self.cfg.stack.name}: {summary.reason or 'stopped'}")
+        for col in ("service", "uptime s", "received", "published", "rejected", "errors", "exit code"):
+            t.add_column(col, justify="left" if col == "service" else "right")
+        for r in summary.rows:
+            counts = ("-" if r[k] is None else str(r[k])
+                      for k in ("received", "published", "rejected", "errors"))
+            t.add_row(r["service"], f"{r['uptime_s']:.1f}", *counts, str(r["exit_code"]))
+        console = Console(file=self.out, width=max(100, Console(file=self.out).width))
+        console.print(t)
+        if summary.recording:
+            console.print(f"recording: {summary.recording}")
+        console.print(f"logs: {self.run_dir}/")
+
+
+def run_stack(
+    stack: Stack,
+    *,
+    duration_s: float | None = None,
+    env_overrides: Mapping[str, str] | None = None,
+    extra_args: Mapping[str, Sequence[str]] | None = None,
+    out: TextIO | None = None,
+    live: bool | None = None,
+    on_started: Callable[[Supervisor], None] | None = None,
+) -> int:
+    """``psm up``: start, watch, stop, summarise; returns the exit code (0 clean, 1 when a
+    process failed; SIGINT/SIGTERM end the run cleanly)."""
+    sup = Supervisor(stack, env_overrides=env_overrides, extra_args=extra_args, out=out, live=live)
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        sup.stop(f"signal {signal.Signals(signum).name}")
+
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    failure = ""
+    try:
+        try:
+            sup.start()
+            if on_started is not None:
+                on_started(sup)
+            if not sup.stop_event.is_set():
+                sup.run(duration_s)
+        except StackFailureError as exc:
+            failure = str(exc)
+        finally:
+            summary = sup.shutdown()
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+    if failure:
+        summary.ok = False
+        summary.reason = "failed"
+        print(f"psm up: error: {failure}", file=sys.stderr, flush=True)
+    else:
+        summary.reason = sup._stop_reason or (f"ran {duration_s:g} s" if duration_s else "stopped")
+    bad = [r for r in summary.rows if r["exit_code"] not in (0, -signal.SIGTERM)]
+    sup.print_summary(summary)
+    if bad and not failure:
+        summary.ok = False
+        print("psm up: error: " + ", ".join(f"{r['service']} exited with {r['exit_code']}" for r in bad),
+              file=sys.stderr)
+    return 0 if summary.ok else 1
+
