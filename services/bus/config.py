@@ -305,7 +305,9 @@ class ServiceConfig(BaseSettings):
 def config_error(exc: ValidationError) -> ConfigError:
     """The first error of a pydantic ``ValidationError`` as one :class:`ConfigError` line."""
     err = exc.errors()[0]
-    path = ".".join(str(p) for p in err["loc"])
+    path = ""
+    for part in err["loc"]:
+        path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
     if err["type"] == "extra_forbidden":
         return ConfigError(path, "unknown field")
     ctx_error = err.get("ctx", {}).get("error")

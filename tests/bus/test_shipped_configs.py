@@ -11,7 +11,9 @@ from services.bus.config import ServiceConfig, load_config
 from services.bus.echo import EchoConfig
 from services.bus.recorder import RecorderConfig
 from services.bus.replayer import ReplayerConfig
+from services.bus.router import RouterConfig
 from services.goal_tracker.config import TrackerConfig
+from services.stack import load_stack
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -19,16 +21,25 @@ CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 @pytest.mark.parametrize(
     "cls", [ServiceConfig, ArmConfig, TrackerConfig, RecorderConfig, ReplayerConfig, EchoConfig]
 )
-def test_local_config_is_valid_for_every_service(cls: type) -> None:
-    cfg = load_config(cls, CONFIGS / "local.toml", env={})
+@pytest.mark.parametrize("name", ["local.toml", "stack.toml"])
+def test_client_configs_are_valid_for_every_service(cls: type, name: str) -> None:
+    cfg = load_config(cls, CONFIGS / name, env={})
     assert cfg.zenoh.mode == "client"
     assert cfg.zenoh.connect == ["tcp/127.0.0.1:7447"]
     assert cfg.zenoh.multicast is False
 
 
-def test_router_config_listens_on_loopback() -> None:
-    cfg = load_config(ServiceConfig, CONFIGS / "router.toml", env={})
-    assert cfg.zenoh.mode == "router"
-    assert cfg.zenoh.listen == ["tcp/127.0.0.1:7447"]
+def test_router_config_listens_where_the_clients_connect() -> None:
+    cfg = load_config(RouterConfig, CONFIGS / "router.toml", env={})
+    assert cfg.session_config().mode == "router"
+    assert cfg.router.listen == ["tcp/127.0.0.1:7447"]
     local = load_config(ServiceConfig, CONFIGS / "local.toml", env={})
-    assert local.zenoh.connect == cfg.zenoh.listen  # the clients reach this router
+    assert local.zenoh.connect == cfg.router.listen
+    stack = load_stack(CONFIGS / "stack.toml", env={})
+    assert stack.configs["router"].router.listen == stack.config.zenoh.connect  # type: ignore[attr-defined]
+
+
+def test_the_default_stack_validates_every_process() -> None:
+    stack = load_stack(CONFIGS / "stack.toml", env={})
+    assert [p.name for p in stack.processes] == ["router", "recorder", "arm", "camera", "goal_tracker"]
+    assert stack.configs["camera"].goal_tracker.synthetic.clock == "arm"  # type: ignore[attr-defined]

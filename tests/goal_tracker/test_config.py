@@ -30,7 +30,7 @@ def test_file_env_and_override_layers(tmp_path) -> None:
     cfg = load_config(
         TrackerConfig,
         path,
-        env={"PSM_GOAL_TRACKER_FILTER_LOST_TIMEOUT_S": "1.5"},
+        env={"PSM_GOAL_TRACKER__FILTER__LOST_TIMEOUT_S": "1.5"},
         overrides={"goal_tracker.camera.device": "3"},
     )
     sec = cfg.goal_tracker

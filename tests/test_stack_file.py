@@ -1,0 +1,64 @@
+"""The stack file: validated as a whole before anything starts, one error line naming the
+process and the field."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.bus.config import ConfigError
+from services.stack import load_stack
+
+BASE = """
+prefix = "psm"
+[zenoh]
+mode = "client"
+connect = ["tcp/127.0.0.1:7447"]
+multicast = false
+[[stack.processes]]
+name = "router"
+command = ["serve", "router"]
+[[stack.processes]]
+name = "arm"
+command = ["arm"]
+[router]
+listen = ["tcp/127.0.0.1:7447"]
+"""
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "stack.toml"
+    p.write_text(BASE + text)
+    return p
+
+
+def test_overrides_reach_every_process_that_has_the_field(tmp_path: Path) -> None:
+    stack = load_stack(_write(tmp_path, "[arm]\ndt_s = 0.002\n"), overrides={"clock": "lockstep",
+                                                                             "arm.dt_s": 0.001}, env={})
+    assert stack.config.clock == "lockstep"
+    assert all(c.clock == "lockstep" for c in stack.configs.values())
+    assert stack.configs["arm"].arm.dt_s == 0.001  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize(
+    ("text", "overrides", "expected"),
+    [
+        ("[arm]\ndt_s = -1\n", {}, "config error: arm: arm.dt_s: Input should be greater than 0"),
+        ("[arm]\nstart_pose = 'nowhere'\n", {}, None),
+        ("[amr]\ndt_s = 0.001\n", {}, "config error: amr: no process of the stack reads this table"),
+        ("[[stack.processes]]\nname = 'arm'\ncommand = ['arm']\n", {},
+         "config error: stack.processes[2].name: duplicate process name 'arm'"),
+        ("[[stack.processes]]\nname = 'x'\ncommand = ['fly']\n", {},
+         "config error: stack.processes[2].command: 'fly' is not a stack command"),
+        ("", {"goal_tracker.goal_name": "x"}, "config error: goal_tracker.goal_name: unknown field for every"),
+    ],
+)
+def test_errors_name_the_process_and_field(tmp_path: Path, text: str, overrides: dict, expected: str | None) -> None:
+    path = _write(tmp_path, text)
+    if expected is None:  # a value only the arm's robot model can check: checked when the arm starts
+        load_stack(path, overrides=overrides, env={})
+        return
+    with pytest.raises(ConfigError) as ei:
+        load_stack(path, overrides=overrides, env={})
+    assert str(ei.value).startswith(expected), str(ei.value)
