@@ -134,7 +134,8 @@ class ManagedProcess:
 
     def log_text(self) -> str:
         """The process's output so far."""
-        self._log.flush()
+        if not self._log.closed:
+            self._log.flush()
         try:
             return self.log_path.read_text(errors="replace")
         except OSError:

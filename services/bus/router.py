@@ -48,10 +48,16 @@ class RouterConfig(ServiceConfig):
 
 def run_router(cfg: RouterConfig) -> int:
     """Run the router until SIGINT/SIGTERM; returns the exit code."""
-    from services.bus.runtime import Service
+    from services.bus.runtime import Service, ServiceApp, run_service
 
-    svc = Service("router", cfg, zenoh=cfg.session_config())
-    svc.log.info("router listening", extra={"listen": cfg.router.listen,
-                                            "connect": cfg.router.connect})
-    svc.run()
-    return 0
+    class Router(ServiceApp):
+        name = "router"
+
+        def zenoh_config(self) -> ZenohConfig:
+            return cfg.session_config()
+
+        def setup(self, svc: Service) -> None:
+            svc.log.info("router listening", extra={"listen": cfg.router.listen,
+                                                    "connect": cfg.router.connect})
+
+    return run_service(Router(cfg))

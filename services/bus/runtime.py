@@ -64,10 +64,12 @@ __all__ = [
     "Counters",
     "RawSample",
     "Service",
+    "ServiceApp",
     "Subscription",
     "TypedPublisher",
     "open_session",
     "project_version",
+    "run_service",
     "setup_logging",
     "zenoh_config",
 ]
@@ -602,6 +604,17 @@ class Service:
         """Ask :meth:`run` to return (thread-safe)."""
         self.stop_event.set()
 
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Block until the service is stopped (or ``timeout_s``); True if stopped. Waits in
+        short slices so a signal handler's stop is seen at once."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while not self.stop_event.is_set():
+            remaining = 0.5 if deadline is None else min(0.5, deadline - time.monotonic())
+            if remaining <= 0:
+                return False
+            self.stop_event.wait(remaining)
+        return True
+
     def on_close(self, fn: Callable[[], None]) -> None:
         """Register ``fn`` to run at close, after subscriptions are drained (e.g. flush a file)."""
         self._on_close.append(fn)
@@ -787,6 +800,98 @@ class Service:
                 self._publish_status()
             except Exception as exc:
                 self.record_error(f"status publication failed: {exc!r}", exc)
+
+
+# --------------------------------------------------------------------------------------------
+# The service skeleton
+# --------------------------------------------------------------------------------------------
+
+
+class ServiceApp:
+    """One service process: a typed config, a :meth:`setup` (subscriptions, publishers,
+    liveliness watches) and optionally a :meth:`loop`; :func:`run_service` does the rest
+    (session, liveliness token, status, signals, shutdown, error reporting).
+
+    Subclasses set :attr:`name` (the liveliness token and status name) and implement
+    :meth:`setup`; a service with work of its own (the arm's control loop, a camera) overrides
+    :meth:`loop`, which must return soon after ``svc.stop_event`` is set::
+
+        class Echo(ServiceApp):
+            name = "echo"
+
+            def setup(self, svc: Service) -> None:
+                svc.subscribe_raw(svc.keys.all.key, self.on_sample)
+
+    Errors raised by ``setup`` (a bad model file, a camera that cannot be opened) end the
+    process with one error line and exit code 2, like a bad config.
+    """
+
+    name: str = ""
+
+    def __init__(self, config: ServiceConfig) -> None:
+        self.config = config
+        #: The process's exit code once the loop has returned (0 unless the service sets it).
+        self.exit_code = 0
+
+    def zenoh_config(self) -> ZenohConfig:
+        """The zenoh settings of the process's session (default: the config's ``[zenoh]``)."""
+        return self.config.zenoh
+
+    def setup(self, svc: Service) -> None:
+        """Declare subscriptions, publishers and watches (before the liveliness token)."""
+
+    def loop(self, svc: Service) -> None:
+        """The service's own work; the default waits until the service is stopped."""
+        svc.wait()
+
+    def teardown(self, svc: Service) -> None:
+        """Called after the loop, before the bus is closed (write statistics, close files)."""
+
+
+#: A shutdown whose Zenoh teardown hangs this long ends the process (the loop has stopped).
+CLOSE_TIMEOUT_S = 5.0
+
+
+def run_service(app: ServiceApp, *, session: Any | None = None, install_signals: bool = True) -> int:
+    """Run ``app``: open the session, ``setup``, declare the liveliness token and start the
+    status, run the ``loop`` until SIGINT/SIGTERM or :meth:`Service.stop`, ``teardown``, close.
+    Returns the exit code."""
+    svc = Service(app.name, app.config, session=session, zenoh=app.zenoh_config())
+    try:
+        app.setup(svc)
+        svc.start()
+        if install_signals:
+            svc.install_signal_handlers()
+        try:
+            app.loop(svc)
+        finally:
+            app.teardown(svc)
+    finally:
+        _close_bounded(svc)
+    return app.exit_code
+
+
+def _close_bounded(svc: Service) -> None:
+    """Close the service; if Zenoh's teardown hangs past :data:`CLOSE_TIMEOUT_S` in a process
+    entry point, end the process (everything of the service's own is already flushed)."""
+    if threading.current_thread() is not threading.main_thread():
+        svc.close()
+        return
+
+    def hung() -> None:
+        sys.stderr.write(f"{svc.name}: bus shutdown still blocked after {CLOSE_TIMEOUT_S} s; exiting\n")
+        sys.stderr.flush()
+        import os
+
+        os._exit(0)
+
+    timer = threading.Timer(CLOSE_TIMEOUT_S, hung)
+    timer.daemon = True
+    timer.start()
+    try:
+        svc.close()
+    finally:
+        timer.cancel()
 
 
 def stream_class_of(topic: Topic) -> StreamClass:

@@ -1,0 +1,166 @@
+"""``psm up``: the supervisor starts a stack in order, reports a process that dies with its
+log's tail and stops everything, and leaves no process behind — also when it is SIGKILLed."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from services.supervisor import ManagedProcess, free_port, psm_argv
+
+pytestmark = pytest.mark.integration
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _stack(tmp_path: Path, extra: str = "", arm: str = "") -> Path:
+    port = free_port()
+    text = f"""
+prefix = "psmtest{port}"
+clock = "lockstep"
+log_level = "INFO"
+status_period_s = 0.2
+[zenoh]
+mode = "client"
+connect = ["tcp/127.0.0.1:{port}"]
+multicast = false
+[stack]
+name = "test"
+startup_timeout_s = 40.0
+stop_timeout_s = 10.0
+run_dir = "{tmp_path / 'run'}"
+[[stack.processes]]
+name = "router"
+command = ["serve", "router"]
+[[stack.processes]]
+name = "recorder"
+command = ["record"]
+[[stack.processes]]
+name = "arm"
+command = ["arm"]
+{extra}
+[router]
+listen = ["tcp/127.0.0.1:{port}"]
+[recorder]
+output = "{tmp_path / 'run.mcap'}"
+[arm]
+dt_s = 0.002
+{arm}
+"""
+    path = tmp_path / "stack.toml"
+    path.write_text(text)
+    return path
+
+
+def _up(stack: Path, *args: str, tmp_path: Path) -> ManagedProcess:
+    return ManagedProcess("up", psm_argv(["up", str(stack), *args]), tmp_path / "up.log", cwd=ROOT)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie waiting for its (gone) parent counts as gone
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _child_pids(log: str) -> dict[str, int]:
+    out = {}
+    for line in log.splitlines():
+        if line.startswith("started ") and "(pid " in line:
+            name = line.split()[1]
+            out[name] = int(line.rsplit("(pid ", 1)[1].rstrip(")"))
+    return out
+
+
+def _wait_for(pred, timeout_s: float) -> bool:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.1)
+    return bool(pred())
+
+
+def test_up_runs_the_stack_for_a_duration_and_summarises(tmp_path: Path) -> None:
+    from services.bus.log import read_log
+
+    up = _up(_stack(tmp_path), "--duration", "4", "--clock", "lockstep", "--no-live", tmp_path=tmp_path)
+    try:
+        rc = up.wait(120)
+    finally:
+        up.stop()
+    log = up.log_text()
+    assert rc == 0, log
+    assert set(_child_pids(log)) == {"router", "recorder", "arm"}
+    for name in ("router", "recorder", "arm"):
+        assert any(line.lstrip("│ ").startswith(name) for line in log.splitlines()), log
+    assert "recording:" in log and "ran 4 s" in log
+    assert not any(_alive(pid) for pid in _child_pids(log).values())
+    topics = {topic for topic, _msg, _stamp in read_log(tmp_path / "run.mcap")}
+    assert any(k.endswith("/arm/state") for k in topics), topics
+
+
+def test_a_process_that_dies_stops_the_stack_with_its_log(tmp_path: Path) -> None:
+    # The arm's model cannot be loaded: the arm exits during start-up with one error line.
+    up = _up(_stack(tmp_path, arm='urdf = "/nonexistent/robot.urdf"'), "--no-live", tmp_path=tmp_path)
+    try:
+        rc = up.wait(120)
+    finally:
+        up.stop()
+    log = up.log_text()
+    assert rc == 1, log
+    assert "psm up: error: arm exited during start-up (exit code 2)" in log, log
+    assert "psm arm: error:" in log and "robot.urdf" in log  # the tail of the arm's log
+    assert not any(_alive(pid) for pid in _child_pids(log).values()), log
+
+
+def test_sigkill_of_the_supervisor_leaves_no_orphan(tmp_path: Path) -> None:
+    up = _up(_stack(tmp_path), "--no-live", tmp_path=tmp_path)
+    try:
+        assert _wait_for(lambda: len(_child_pids(up.log_text())) == 3, 90), up.log_text()
+        pids = _child_pids(up.log_text())
+        assert all(_alive(p) for p in pids.values())
+        os.kill(up.pid, signal.SIGKILL)
+        up.wait(10)
+        assert _wait_for(lambda: not any(_alive(p) for p in pids.values()), 30), {
+            n: _alive(p) for n, p in pids.items()
+        }
+    finally:
+        up.stop()
+
+
+def test_sigterm_stops_in_reverse_order(tmp_path: Path) -> None:
+    up = _up(_stack(tmp_path), "--no-live", tmp_path=tmp_path)
+    try:
+        assert _wait_for(lambda: len(_child_pids(up.log_text())) == 3, 90), up.log_text()
+        time.sleep(1.0)
+        up.signal(signal.SIGTERM)
+        rc = up.wait(60)
+    finally:
+        up.stop()
+    log = up.log_text()
+    assert rc == 0, log
+    assert "signal SIGTERM" in log
+    # the recorder stopped after the arm: its file holds the arm's last state
+    assert (tmp_path / "run.mcap").stat().st_size > 0
+
+
+def test_a_bad_stack_file_is_one_error_line(tmp_path: Path) -> None:
+    path = _stack(tmp_path, arm="lockstep_timeout_s = -1")
+    r = subprocess.run(psm_argv(["up", str(path)]), capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        "psm up: error: config error: arm: arm.lockstep_timeout_s: Input should be greater than 0 (got -1)"
+    ], r.stderr
+    assert sys.executable  # the command ran with this interpreter
