@@ -124,13 +124,12 @@ def bench_tick_cost(n: int) -> dict[str, Any]:
     """Per-tick cost of the arm core and of publishing one state, µs."""
     import zenoh
 
-    from services.arm.bridge import state_message
-    from services.arm.controller import Command, CommandMode
-    from services.arm.robot import RobotModel
     from services.arm.sim import ArmSim, ArmSimConfig
     from services.bus.config import ZenohConfig
     from services.bus.messages import Keys
     from services.bus.runtime import open_session
+    from services.robot.model import RobotModel
+    from services.robot.protocol import Command, CommandMode, state_message
 
     robot = RobotModel.load()
     sim = ArmSim(robot, ArmSimConfig())

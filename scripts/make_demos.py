@@ -22,13 +22,13 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from services.arm.demos import DEMOS, FEEDING_SEQUENCE  # noqa: E402
-from services.arm.robot import RobotModel  # noqa: E402
 from services.arm.teach import (  # noqa: E402
     TeachConfig,
     extract_ee_trajectory,
     teach,
     write_teach_mcap,
 )
+from services.robot.model import RobotModel  # noqa: E402
 
 QUANTIZE_BITS = 20
 

@@ -84,9 +84,9 @@ def _run_arm(args: argparse.Namespace) -> int:
 
 def _run_teach(args: argparse.Namespace) -> int:
     from services.arm.demos import DEMOS
-    from services.arm.robot import RobotModel
     from services.arm.teach import TeachConfig, Tremor, load_path_file, teach, write_teach_mcap
     from services.cli import CLIError
+    from services.robot.model import RobotModel
 
     if args.list:
         for name, d in DEMOS.items():

@@ -14,9 +14,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from services.arm.controller import ControllerGains, ValidationLimits
-from services.arm.robot import RobotModel
 from services.arm.sim import ArmSimConfig
 from services.bus.config import ConfigError, ServiceConfig, meta, spec
+from services.robot.model import RobotModel
 
 
 @dataclass

@@ -31,10 +31,10 @@ from typing import Any
 
 import numpy as np
 
-from services.arm.bridge import cartesian_command, joint_command
 from services.bus.config import ServiceConfig, add_config_arguments, config_from_args
 from services.bus.messages import ArmCommand, ArmState, decode
 from services.bus.runtime import Service
+from services.robot.protocol import cartesian_command, joint_command
 
 PATTERNS = ("hold", "accel", "sine", "joint", "bad")
 

@@ -35,12 +35,16 @@ from typing import Any
 
 import numpy as np
 
-from services.arm.bridge import command_from_message, frame_transforms, state_message
 from services.arm.config import ArmConfig
-from services.arm.controller import CommandRejectedError
 from services.arm.sim import ArmSim
 from services.bus.messages import ArmCommand, MessageDecodeError, decode
 from services.bus.runtime import Service
+from services.robot.protocol import (
+    CommandRejectedError,
+    command_from_message,
+    frame_transforms,
+    state_message,
+)
 
 SERVICE_NAME = "arm"
 

@@ -24,9 +24,6 @@ import pinocchio as pin
 from services.arm.controller import (
     AccelBounds,
     ClampReport,
-    Command,
-    CommandMode,
-    CommandRejectedError,
     ControllerGains,
     IKController,
     ValidationLimits,
@@ -34,11 +31,9 @@ from services.arm.controller import (
     joint_accel_bounds,
     validate_command,
 )
-from services.arm.robot import (
-    EEState,
-    RobotModel,
-    matrix_from_quat_xyzw,
-)
+from services.robot.model import RobotModel
+from services.robot.protocol import Command, CommandMode, CommandRejectedError, EEState
+from services.robot.rotations import matrix_from_quat_xyzw
 
 
 @dataclass

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.arm.robot import RobotModel
 from services.bus.messages import ArmState, Keys, ServiceStatus
+from services.robot.model import RobotModel
 
 from .conftest import ROOT, Bus, stop, wait_until
 

@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from services.arm.demos import DEMOS, FEEDING_SEQUENCE, trajectory_from_recording
-from services.arm.robot import RobotModel
 from services.arm.teach import (
     TEACH_METADATA,
     RecordedPath,
@@ -27,6 +26,7 @@ from services.arm.teach import (
 )
 from services.bus.log import read_log, read_metadata
 from services.bus.messages import ArmState, FrameTransforms
+from services.robot.model import RobotModel
 
 from .conftest import ROOT
 
