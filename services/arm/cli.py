@@ -49,6 +49,11 @@ def register(subparsers: Any) -> None:
     )
     src.add_argument("--list", action="store_true", help="list the built-in demonstrations")
     t.add_argument("-o", "--out", metavar="FILE.mcap", help="output recording")
+    t.add_argument(
+        "--scene",
+        metavar="FILE.toml",
+        help="feeding scene and task for --task/--list (default configs/feeding.toml)",
+    )
     t.add_argument("--seed", type=int, help="tremor seed (default: the task's, or 0)")
     t.add_argument("--no-tremor", action="store_true", help="follow the path exactly")
     t.add_argument("--dt", type=float, default=0.002, metavar="S", help="period, s (0.002)")
@@ -83,13 +88,14 @@ def _run_arm(args: argparse.Namespace) -> int:
 
 
 def _run_teach(args: argparse.Namespace) -> int:
-    from services.arm.demos import DEMOS
+    from services.arm.demos import load_demos
     from services.arm.teach import TeachConfig, Tremor, load_path_file, teach, write_teach_mcap
     from services.cli import CLIError
     from services.robot.model import RobotModel
 
+    demos = load_demos(args.scene) if args.list or args.task else {}
     if args.list:
-        for name, d in DEMOS.items():
+        for name, d in demos.items():
             print(f"{name:16s} goal {d.goal}  {d.description}")
         return 0
     if not args.out:
@@ -98,9 +104,9 @@ def _run_teach(args: argparse.Namespace) -> int:
         raise CLIError("--dt must be in (0, 0.1] s")
     meta: dict[str, Any] = {}
     if args.task:
-        if args.task not in DEMOS:
-            raise CLIError(f"unknown task {args.task!r}; known: {', '.join(DEMOS)}")
-        spec = DEMOS[args.task]
+        if args.task not in demos:
+            raise CLIError(f"unknown task {args.task!r}; known: {', '.join(demos)}")
+        spec = demos[args.task]
         path = spec.path()
         seed = spec.seed if args.seed is None else args.seed
         meta = {
