@@ -4,7 +4,7 @@ Every tick the arm publishes :class:`~services.bus.messages.ArmState` on ``<pref
 and applies the latest valid :class:`~services.bus.messages.ArmCommand` from
 ``<prefix>/arm/command``; link transforms go to ``<prefix>/arm/transforms`` at a lower rate.
 
-Clock modes (DESIGN §3):
+Clock modes (``docs/architecture.md``, *Time and the control loop*):
 
 * ``realtime`` — state k is published at ``t0 + k·dt`` (wall clock); commands arriving before
   ``t0 + (k+1)·dt`` drive the step to k+1; a later command counts as *late*.
