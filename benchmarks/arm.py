@@ -12,12 +12,13 @@ Run ``python -m benchmarks.arm`` (``--quick`` for a short run). Writes
    loopback, multicast off, express + real-time priority, 300-byte payload; the pong callback
    republishes the bytes.
 3. **Closed loop**: the real ``arm`` process (peer, listening on loopback) and the trivial
-   controller ``services.arm.probe`` (pattern ``sine``: PD tracking of a 5 cm, 0.5 Hz sine) as
-   a second process. Realtime at 500 Hz and 1 kHz: achieved rate, tick jitter (publication
-   lateness vs. schedule), missed ticks (published > 1 dt late), late commands (answer arrived
-   more than one dt after its state), state→command latency (from the arm's ``put`` of state k
-   to the arrival of the command answering k, measured in the arm). Lockstep: ticks/s. Each
-   configuration runs with normal scheduling and with both processes at ``SCHED_FIFO``.
+   controller ``psm arm probe`` (run as ``python -m services.arm.probe``; pattern ``sine``: PD
+   tracking of a 5 cm, 0.5 Hz sine) as a second process. Realtime at 500 Hz and 1 kHz: achieved
+   rate, tick jitter (publication lateness vs. schedule), missed ticks (published > 1 dt late),
+   late commands (answer arrived more than one dt after its state), state→command latency (from
+   the arm's ``put`` of state k to the arrival of the command answering k, measured in the arm).
+   Lockstep: ticks/s. Each configuration runs with normal scheduling and with both processes at
+   ``SCHED_FIFO``.
 4. **Platform reference**: a Python loop that only waits for 1 ms deadlines (and one that
    busy-waits), with the CPU busy/steal shares from /proc/stat, to separate the software's
    cost from the machine's scheduling.
@@ -124,13 +125,12 @@ def bench_tick_cost(n: int) -> dict[str, Any]:
     """Per-tick cost of the arm core and of publishing one state, µs."""
     import zenoh
 
-    from services.arm.bridge import state_message
-    from services.arm.controller import Command, CommandMode
-    from services.arm.robot import RobotModel
     from services.arm.sim import ArmSim, ArmSimConfig
     from services.bus.config import ZenohConfig
     from services.bus.messages import Keys
     from services.bus.runtime import open_session
+    from services.robot.model import RobotModel
+    from services.robot.protocol import Command, CommandMode, state_message
 
     robot = RobotModel.load()
     sim = ArmSim(robot, ArmSimConfig())

@@ -1,5 +1,5 @@
 """Phase Space Model (PSM): learn a motion from ONE demonstration and reproduce it towards moving
-goals, through perturbations and around obstacles (see ``docs/psm.md`` and DESIGN.md §4).
+goals, through perturbations and around obstacles (see ``docs/psm.md``).
 
 Pure numpy/scipy: no bus, camera or robot needed.
 

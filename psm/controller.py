@@ -2,7 +2,7 @@
 
 Per dimension it runs the chain of PSTFs learned by :class:`psm.PhaseSpaceModel`, re-solving the
 current segment from the measured state at every tick, which is what makes the model robust to
-pushes, moved starts and moving goals (paper §III-C..F, DESIGN §4):
+pushes, moved starts and moving goals (paper §III-C..F; corrected equations in ``docs/psm.md``):
 
 * **segment law** (eq. 7 with the corrected eq. 5): towards the next via-point ``(x_n, v_n)`` the
   acceleration is ``c₀ − k Δ/2`` with ``Δ = x_n − x``, ``c₀ = (v_n² − v²)/(2Δ)``; the learned ``k`` is

@@ -1,4 +1,4 @@
-"""Learning one dimension of a PSM from a demonstration (paper §III-C, DESIGN §4).
+"""Learning one dimension of a PSM from a demonstration (paper §III-C; ``docs/psm.md``).
 
 Pipeline for each dimension of a demonstration ``t (T,) [s]``, ``X (T, D)``:
 

@@ -1,8 +1,8 @@
 """The phase space transition function (PSTF) of one segment in one dimension.
 
 A PSTF drives a unit point mass with the linear law ``ẍ = k x + c`` from a current phase-space
-state ``(x_c, v_c)`` to a target state ``(x_n, v_n)``. Everything here follows DESIGN.md §4 (the
-paper's equations 4–12 with their typos corrected):
+state ``(x_c, v_c)`` to a target state ``(x_n, v_n)``. Everything here follows ``docs/psm.md``
+("The maths, as implemented": the paper's equations 4–12 with their typos corrected):
 
 * energy: ``v²/2 = v_c²/2 + ∫ (k s + c) ds`` from ``x_c`` to ``x``;
 * eq. 5 (sign fixed): ``c = (v_n² − v_c²)/(2Δ) − k (x_n + x_c)/2`` with ``Δ = x_n − x_c``;
@@ -127,7 +127,7 @@ def propagate(
     """Closed-form solution of ``ẍ = k x + c`` from ``(x_c, v_c)`` at ``t = 0`` (eq. 6, corrected).
 
     Written as ``x(t) = x_c + v_c t S(kt²) + a_c t² G(kt²)`` with ``a_c = k x_c + c``, which equals
-    the exponential (k > 0), trigonometric (k < 0) and parabolic (k = 0) forms of DESIGN §4 but
+    the exponential (k > 0), trigonometric (k < 0) and parabolic (k = 0) forms of eq. 6 but
     stays exact as ``k → 0`` (no ``c/k``). ``t``: any shape [s]; returns ``(x, v)`` of that shape.
     """
     t = np.asarray(t, dtype=float)

@@ -116,7 +116,7 @@ class Command:
 COMMANDS: dict[tuple[str, ...], Command] = {
     ("serve", "router"): Command(_router_config, "router"),
     ("arm",): Command(_arm_config, "arm"),
-    ("arm", "probe"): Command(_probe_config),
+    ("arm", "probe"): Command(_probe_config, "probe"),
     ("camera", "synth"): Command(_tracker_config, "camera_synth"),
     ("track",): Command(_tracker_config, "goal_tracker"),
     ("record",): Command(_recorder_config, "recorder"),

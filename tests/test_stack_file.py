@@ -51,12 +51,15 @@ def test_overrides_reach_every_process_that_has_the_field(tmp_path: Path) -> Non
          "config error: stack.processes[2].name: duplicate process name 'arm'"),
         ("[[stack.processes]]\nname = 'x'\ncommand = ['fly']\n", {},
          "config error: stack.processes[2].command: 'fly' is not a stack command"),
-        ("", {"goal_tracker.goal_name": "x"}, "config error: goal_tracker.goal_name: unknown field for every"),
+        ("", {"goal_tracker.goal_name": "x"},
+         "config error: goal_tracker.goal_name: unknown field for every"),
     ],
 )
-def test_errors_name_the_process_and_field(tmp_path: Path, text: str, overrides: dict, expected: str | None) -> None:
+def test_errors_name_the_process_and_field(
+    tmp_path: Path, text: str, overrides: dict, expected: str | None
+) -> None:
     path = _write(tmp_path, text)
-    if expected is None:  # a value only the arm's robot model can check: checked when the arm starts
+    if expected is None:  # only the arm's robot model can check a pose: the arm checks it at start
         load_stack(path, overrides=overrides, env={})
         return
     with pytest.raises(ConfigError) as ei:

@@ -1,13 +1,84 @@
-"""``psm arm`` (the simulated arm service) and ``psm teach`` (record a guided demonstration)."""
+"""``psm arm`` (the simulated arm service), ``psm arm probe`` (a trivial controller for it) and
+``psm teach`` (record a guided demonstration).
+
+The argument definitions live here (light imports, so ``psm --help`` stays fast); the work is in
+:mod:`services.arm.service`, :mod:`services.arm.probe` and :mod:`services.arm.teach`.
+"""
 
 from __future__ import annotations
 
 import argparse
+import textwrap
 from typing import Any
+
+#: The probe's patterns and what each commands (computed from the state only, so a lockstep
+#: run is deterministic).
+PROBE_PATTERNS: dict[str, str] = {
+    "hold": "PD to the first state's EE position and orientation",
+    "accel": "constant EE linear acceleration --accel (m/s²), orientation held",
+    "sine": "PD tracking of x0 + A sin(2π f t) along y (A = --amplitude m, f = --frequency Hz, "
+    "t = the arm's sim time)",
+    "joint": "constant joint accelerations --joint-accel (rad/s²)",
+    "bad": "cycles through invalid commands (NaN, inf, out of range, wrong sizes, unspecified "
+    "mode, zero quaternion, undecodable bytes): none of them may move the arm",
+}
+
+PROBE_DESCRIPTION = "\n\n".join(
+    (
+        textwrap.fill(
+            "A trivial controller for the arm: answers every <prefix>/arm/state with an "
+            "<prefix>/arm/command at once (integration tests, benchmarks, poking a running arm).",
+            88,
+        ),
+        "patterns:\n"
+        + "\n".join(
+            textwrap.fill(text, 88, initial_indent=f"  {name:7s}", subsequent_indent=" " * 9)
+            for name, text in PROBE_PATTERNS.items()
+        ),
+        textwrap.fill(
+            "The reply is computed and published on Zenoh's receive thread. --stop-after-tick N "
+            "stops answering from tick N on (the process stays up, like a hung planner). Runs "
+            "until SIGINT/SIGTERM or --max-runtime.",
+            88,
+        ),
+    )
+)
+
+
+def _floats(text: str) -> list[float]:
+    """A comma-separated list of floats (``"0,0.8,0"``)."""
+    try:
+        return [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got {text!r}") from None
+
+
+def add_probe_arguments(parser: argparse.ArgumentParser) -> None:
+    """The probe's flags (for ``psm arm probe`` and ``python -m services.arm.probe``)."""
+    from services.bus.config import add_config_arguments
+
+    parser.add_argument("--pattern", choices=tuple(PROBE_PATTERNS), default="hold", help="default hold")
+    parser.add_argument(
+        "--accel", type=_floats, default=[0.0, 0.0, 0.0], metavar="AX,AY,AZ", help="m/s² (accel)"
+    )
+    parser.add_argument(
+        "--joint-accel", type=_floats, default=[], metavar="A1,...", help="rad/s², one per joint (joint)"
+    )
+    parser.add_argument("--amplitude", type=float, default=0.05, metavar="M", help="sine amplitude, m")
+    parser.add_argument("--frequency", type=float, default=0.5, metavar="HZ", help="sine frequency, Hz")
+    parser.add_argument(
+        "--stop-after-tick", type=int, default=-1, metavar="N", help="stop answering at tick N"
+    )
+    parser.add_argument("--max-runtime", type=float, default=0.0, metavar="S", help="exit after S seconds")
+    parser.add_argument("--name", default="probe", help="service name (liveliness/status)")
+    parser.add_argument(
+        "--rt-priority", type=int, default=0, metavar="P", help="SCHED_FIFO priority 1-99 (0 = off)"
+    )
+    add_config_arguments(parser)
 
 
 def register(subparsers: Any) -> None:
-    """Add the ``arm`` and ``teach`` sub-commands."""
+    """Add the ``arm`` (with its ``probe`` sub-command) and ``teach`` sub-commands."""
     from services.bus.config import add_config_arguments
 
     p = subparsers.add_parser(
@@ -32,6 +103,20 @@ def register(subparsers: Any) -> None:
         help="SCHED_FIFO priority 1-99 (needs CAP_SYS_NICE; default 0 = off)",
     )
     p.set_defaults(func=_run_arm)
+    sub = p.add_subparsers(
+        dest="arm_command",
+        metavar="[probe]",
+        title="sub-command",
+        description="without one, `psm arm` runs the arm; `psm arm probe --help` for the probe",
+    )
+    pr = sub.add_parser(
+        "probe",
+        help="a trivial controller that answers every arm state (flags after `probe`)",
+        description=PROBE_DESCRIPTION,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_probe_arguments(pr)
+    pr.set_defaults(func=_run_probe, command="arm probe")
 
     t = subparsers.add_parser(
         "teach",
@@ -49,6 +134,11 @@ def register(subparsers: Any) -> None:
     )
     src.add_argument("--list", action="store_true", help="list the built-in demonstrations")
     t.add_argument("-o", "--out", metavar="FILE.mcap", help="output recording")
+    t.add_argument(
+        "--scene",
+        metavar="FILE.toml",
+        help="feeding scene and task for --task/--list (default configs/feeding.toml)",
+    )
     t.add_argument("--seed", type=int, help="tremor seed (default: the task's, or 0)")
     t.add_argument("--no-tremor", action="store_true", help="follow the path exactly")
     t.add_argument("--dt", type=float, default=0.002, metavar="S", help="period, s (0.002)")
@@ -82,14 +172,21 @@ def _run_arm(args: argparse.Namespace) -> int:
     return main(cfg)
 
 
+def _run_probe(args: argparse.Namespace) -> int:
+    from services.arm.probe import run
+
+    return run(args)
+
+
 def _run_teach(args: argparse.Namespace) -> int:
-    from services.arm.demos import DEMOS
-    from services.arm.robot import RobotModel
+    from services.arm.demos import load_demos
     from services.arm.teach import TeachConfig, Tremor, load_path_file, teach, write_teach_mcap
     from services.cli import CLIError
+    from services.robot.model import RobotModel
 
+    demos = load_demos(args.scene) if args.list or args.task else {}
     if args.list:
-        for name, d in DEMOS.items():
+        for name, d in demos.items():
             print(f"{name:16s} goal {d.goal}  {d.description}")
         return 0
     if not args.out:
@@ -98,9 +195,9 @@ def _run_teach(args: argparse.Namespace) -> int:
         raise CLIError("--dt must be in (0, 0.1] s")
     meta: dict[str, Any] = {}
     if args.task:
-        if args.task not in DEMOS:
-            raise CLIError(f"unknown task {args.task!r}; known: {', '.join(DEMOS)}")
-        spec = DEMOS[args.task]
+        if args.task not in demos:
+            raise CLIError(f"unknown task {args.task!r}; known: {', '.join(demos)}")
+        spec = demos[args.task]
         path = spec.path()
         seed = spec.seed if args.seed is None else args.seed
         meta = {

@@ -18,9 +18,9 @@ from __future__ import annotations
 
 from pydantic import Field
 
-from services.arm.robot import RobotModel
 from services.arm.sim import ArmSimConfig
 from services.bus.config import ConfigError, ServiceConfig, StrList
+from services.robot.model import RobotModel
 
 
 class ArmSection(ArmSimConfig):

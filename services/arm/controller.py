@@ -1,4 +1,5 @@
-"""Commands, their validation, the inverse-kinematics controller and the joint-limit clamps.
+"""Command validation, the inverse-kinematics controller and the joint-limit clamps (the
+command types themselves are the protocol's: :mod:`services.robot.protocol`).
 
 The controller turns a Cartesian command into joint accelerations (paper Fig. 6)::
 
@@ -16,7 +17,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from enum import Enum
 
 import numpy as np
 import pinocchio as pin
@@ -24,37 +24,9 @@ from pydantic import Field
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotri as _potri
 
-from services.arm.robot import JointLimits, RobotModel, matrix_from_quat_xyzw
 from services.bus.config import Section
-
-
-class CommandMode(Enum):
-    """What a command asks for."""
-
-    CARTESIAN = "cartesian"  #: EE linear acceleration + orientation reference (IK inside)
-    JOINT = "joint"  #: raw joint accelerations
-
-
-@dataclass
-class Command:
-    """A command for the arm, already decoded from the bus.
-
-    Attributes:
-        tick: tick of the arm state this command answers (echoed from ``ArmState.tick``).
-        mode: :class:`CommandMode`.
-        linear_acceleration: desired EE linear acceleration ``(3,)`` m/s² (Cartesian mode).
-        orientation_xyzw: orientation reference ``(4,)`` ``(x, y, z, w)`` or ``None`` to hold
-            the orientation captured when Cartesian control started (Cartesian mode).
-        angular_velocity: optional angular velocity reference ``(3,)`` rad/s (Cartesian mode).
-        joint_acceleration: joint accelerations ``(n,)`` rad/s² (joint mode).
-    """
-
-    tick: int
-    mode: CommandMode
-    linear_acceleration: np.ndarray | None = None
-    orientation_xyzw: np.ndarray | None = None
-    angular_velocity: np.ndarray | None = None
-    joint_acceleration: np.ndarray | None = None
+from services.robot.model import JointLimits, RobotModel
+from services.robot.protocol import Command, CommandMode, CommandRejectedError
 
 
 class ValidationLimits(Section):
@@ -74,14 +46,6 @@ class ValidationLimits(Section):
     quat_norm_tolerance: float = Field(
         0.1, gt=0.0, description="quaternions with | |q| - 1 | above this are rejected"
     )
-
-
-class CommandRejectedError(ValueError):
-    """A command failed validation; ``reason`` is a short counter key."""
-
-    def __init__(self, reason: str, message: str) -> None:
-        super().__init__(message)
-        self.reason = reason
 
 
 def _vector(value: object, size: int, name: str) -> np.ndarray:
@@ -397,15 +361,11 @@ class IKController:
 __all__ = [
     "AccelBounds",
     "ClampReport",
-    "Command",
-    "CommandMode",
-    "CommandRejectedError",
     "ControllerGains",
     "IKController",
     "ValidationLimits",
     "apply_accel_bounds",
     "clamp_joint_accel",
     "joint_accel_bounds",
-    "matrix_from_quat_xyzw",
     "validate_command",
 ]

@@ -1,23 +1,16 @@
-"""A trivial controller for the arm: answers every ``ArmState`` with an ``ArmCommand`` at once.
+"""``psm arm probe``: a trivial controller for the arm that answers every ``ArmState`` with an
+``ArmCommand`` at once.
 
 Used by the integration tests and ``benchmarks/arm.py`` (and handy for poking a running arm)::
 
-    python -m services.arm.probe --pattern sine --connect tcp/127.0.0.1:7447 --no-multicast
+    psm arm probe --pattern sine --connect tcp/127.0.0.1:7447 --no-multicast
+    python -m services.arm.probe --pattern sine ...      # the same, without the psm command line
 
-Patterns (the commanded quantity is computed from the state only, so a lockstep run is
-deterministic):
-
-* ``hold``  — PD to the first state's EE position and orientation;
-* ``accel`` — constant EE linear acceleration ``--accel`` (m/s²), orientation held;
-* ``sine``  — PD tracking of ``x0 + A sin(2π f t) ŷ`` (A = ``--amplitude`` m, f = ``--frequency``
-  Hz, t = the arm's sim time);
-* ``joint`` — constant joint accelerations ``--joint-accel`` (rad/s²);
-* ``bad``   — cycles through invalid commands (NaN, inf, out of range, wrong sizes, unspecified
-  mode, zero quaternion, undecodable bytes): none of them may move the arm.
-
-The reply is computed and published on Zenoh's receive thread (no queue hop) to keep the loop
-latency minimal. ``--stop-after-tick N`` stops answering from tick N on (the process stays up,
-like a hung planner).
+The patterns (:data:`services.arm.cli.PROBE_PATTERNS`, listed by ``psm arm probe --help``)
+compute the command from the state only, so a lockstep run is deterministic. The reply is
+computed and published on Zenoh's receive thread (no queue hop) to keep the loop latency
+minimal. ``--stop-after-tick N`` stops answering from tick N on (the process stays up, like a
+hung planner).
 """
 
 from __future__ import annotations
@@ -31,16 +24,14 @@ from typing import Any
 
 import numpy as np
 
-from services.arm.bridge import cartesian_command, joint_command
-from services.bus.config import ServiceConfig, add_config_arguments, config_from_args
+from services.arm.cli import PROBE_PATTERNS
+from services.bus.config import ServiceConfig, config_from_args
 from services.bus.messages import ArmCommand, ArmState, decode
 from services.bus.runtime import Service
+from services.robot.protocol import cartesian_command, joint_command
 
-PATTERNS = ("hold", "accel", "sine", "joint", "bad")
-
-
-def _floats(text: str) -> list[float]:
-    return [float(v) for v in text.split(",") if v.strip()]
+#: The pattern names (described in :data:`services.arm.cli.PROBE_PATTERNS`).
+PATTERNS: tuple[str, ...] = tuple(PROBE_PATTERNS)
 
 
 class Probe:
@@ -125,22 +116,13 @@ class Probe:
         return b"\xff\xff\xff\xff not a protobuf"
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the probe until SIGINT/SIGTERM or ``--max-runtime``; returns the exit code."""
-    parser = argparse.ArgumentParser(prog="python -m services.arm.probe", description=__doc__)
-    parser.add_argument("--pattern", choices=PATTERNS, default="hold")
-    parser.add_argument("--accel", type=_floats, default=[0.0, 0.0, 0.0], help="ax,ay,az m/s²")
-    parser.add_argument("--joint-accel", type=_floats, default=[], help="rad/s², comma list")
-    parser.add_argument("--amplitude", type=float, default=0.05, help="sine amplitude, m")
-    parser.add_argument("--frequency", type=float, default=0.5, help="sine frequency, Hz")
-    parser.add_argument("--stop-after-tick", type=int, default=-1, help="stop answering at tick")
-    parser.add_argument("--max-runtime", type=float, default=0.0, help="exit after S seconds")
-    parser.add_argument("--name", default="probe", help="service name (liveliness/status)")
-    parser.add_argument(
-        "--rt-priority", type=int, default=0, help="SCHED_FIFO priority (1-99; 0 = normal scheduling)"
-    )
-    add_config_arguments(parser)
-    args = parser.parse_args(argv)
+def run(args: argparse.Namespace) -> int:
+    """Run the probe with parsed arguments (:func:`~services.arm.cli.add_probe_arguments`)
+    until SIGINT/SIGTERM or ``--max-runtime``; returns the exit code.
+
+    Raises:
+        services.bus.config.ConfigError: a bad bus configuration (before joining the bus).
+    """
     cfg = config_from_args(ServiceConfig, args)
     probe = Probe(
         args.pattern,
@@ -183,6 +165,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     svc.run(timeout_s=args.max_runtime or None)
     return 0
 
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m services.arm.probe ARGS``: the same as ``psm arm probe ARGS`` (and as
+    ``python -m services.arm arm probe ARGS``); returns the exit code."""
+    from services.arm.cli import register
+    from services.cli import module_main
+
+    rest = sys.argv[1:] if argv is None else list(argv)
+    return module_main(register, "python -m services.arm", ["arm", "probe", *rest])
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -4,7 +4,7 @@ Every tick the arm publishes :class:`~services.bus.messages.ArmState` on ``<pref
 and applies the latest valid :class:`~services.bus.messages.ArmCommand` from
 ``<prefix>/arm/command``; link transforms go to ``<prefix>/arm/transforms`` at a lower rate.
 
-Clock modes (the stack's ``clock``):
+Clock modes (the stack's ``clock``; ``docs/architecture.md``, *Time and the control loop*):
 
 * ``realtime`` — state k is published at ``t0 + k·dt`` (wall clock); commands arriving before
   ``t0 + (k+1)·dt`` drive the step to k+1; a later command counts as *late*.
@@ -35,12 +35,16 @@ from typing import Any
 
 import numpy as np
 
-from services.arm.bridge import command_from_message, frame_transforms, state_message
 from services.arm.config import ArmConfig
-from services.arm.controller import CommandRejectedError
 from services.arm.sim import ArmSim
 from services.bus.messages import ArmCommand, MessageDecodeError, decode
 from services.bus.runtime import Service
+from services.robot.protocol import (
+    CommandRejectedError,
+    command_from_message,
+    frame_transforms,
+    state_message,
+)
 
 SERVICE_NAME = "arm"
 

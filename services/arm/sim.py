@@ -25,9 +25,6 @@ from pydantic import Field
 from services.arm.controller import (
     AccelBounds,
     ClampReport,
-    Command,
-    CommandMode,
-    CommandRejectedError,
     ControllerGains,
     IKController,
     ValidationLimits,
@@ -35,12 +32,10 @@ from services.arm.controller import (
     joint_accel_bounds,
     validate_command,
 )
-from services.arm.robot import (
-    EEState,
-    RobotModel,
-    matrix_from_quat_xyzw,
-)
 from services.bus.config import ConfigError, Section
+from services.robot.model import RobotModel
+from services.robot.protocol import Command, CommandMode, CommandRejectedError, EEState
+from services.robot.rotations import matrix_from_quat_xyzw
 
 
 class ArmSimConfig(Section):

@@ -25,10 +25,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from services.arm.bridge import frame_transforms, state_message
-from services.arm.controller import Command, CommandMode
-from services.arm.robot import RobotModel, quat_xyzw_from_matrix
 from services.arm.sim import ArmSim, ArmSimConfig, ArmSnapshot
+from services.robot.model import RobotModel
+from services.robot.protocol import Command, CommandMode, frame_transforms, state_message
+from services.robot.rotations import quat_xyzw_from_matrix
 
 #: Metadata record written into every teach recording.
 TEACH_METADATA = "psm.teach"

@@ -17,20 +17,14 @@ from hypothesis import strategies as st
 
 from services.arm.controller import (
     ClampReport,
-    Command,
-    CommandMode,
-    CommandRejectedError,
     ValidationLimits,
     clamp_joint_accel,
     validate_command,
 )
-from services.arm.robot import (
-    RobotModel,
-    matrix_from_quat_xyzw,
-    panda_urdf_path,
-    quat_xyzw_from_matrix,
-)
 from services.arm.sim import ArmSim, ArmSimConfig
+from services.robot.model import RobotModel, panda_urdf_path
+from services.robot.protocol import Command, CommandMode, CommandRejectedError
+from services.robot.rotations import matrix_from_quat_xyzw, quat_xyzw_from_matrix
 
 
 @pytest.fixture(scope="module")

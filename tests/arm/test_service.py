@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.arm.robot import RobotModel
 from services.bus.messages import ArmState, Keys, ServiceStatus
+from services.robot.model import RobotModel
 
 from .conftest import ROOT, Bus, stop, wait_until
 
@@ -124,7 +124,7 @@ def test_invalid_commands_rejected_counted_and_never_applied(bus: Bus, tmp_path:
         "--set",
         "status_period_s=0.2",
     )
-    probe = bus.spawn("services.arm.probe", "--pattern", "bad")
+    probe = bus.spawn("services.cli", "arm", "probe", "--pattern", "bad")  # the psm arm probe path
     wait_until(lambda: bool(states) and states[-1].rejected_commands >= 100, 30.0, "100 rejected commands")
     assert stop(probe) == 0
     wait_until(lambda: any(s.rejected > 0 for s in status), 5.0, "status with rejections")

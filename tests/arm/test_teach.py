@@ -12,8 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.arm.demos import DEMOS, FEEDING_SEQUENCE, trajectory_from_recording
-from services.arm.robot import RobotModel
+from services.arm.demos import build_demos, load_demos, trajectory_from_recording
 from services.arm.teach import (
     TEACH_METADATA,
     RecordedPath,
@@ -27,8 +26,13 @@ from services.arm.teach import (
 )
 from services.bus.log import read_log, read_metadata
 from services.bus.messages import ArmState, FrameTransforms
+from services.robot.model import RobotModel
+from services.tasks.feeding import load_feeding
 
 from .conftest import ROOT
+
+DEMOS = load_demos()
+FEEDING_SEQUENCE = load_feeding().task.sequence
 
 DEMO_DIR = ROOT / "data" / "demos"
 
@@ -173,8 +177,20 @@ def test_committed_demos(name: str) -> None:
 
 
 def test_feeding_sequence_is_continuous() -> None:
+    assert set(FEEDING_SEQUENCE) <= set(DEMOS)
     for a, b in itertools.pairwise(FEEDING_SEQUENCE):
         assert DEMOS[a].goal == DEMOS[b].points[0]
+
+
+def test_demos_follow_the_scene() -> None:
+    """Via-points are relative to the scene: moving the bowl moves the demos that use it."""
+    scene = load_feeding().scene
+    moved = build_demos(scene.model_copy(update={"bowl": (0.60, 0.10, 0.12)}))
+    assert moved["reach_bowl"].goal == (0.60, 0.10, 0.12)
+    assert moved["scoop"].points[0] == (0.60, 0.10, 0.12)
+    assert moved["scoop"].goal == moved["reach_person"].points[0] == (0.66, 0.16, 0.18)
+    assert moved["grasp_spoon"] == DEMOS["grasp_spoon"]
+    assert DEMOS["grasp_spoon"].goal == scene.spoon and DEMOS["reach_person"].goal == scene.person
 
 
 def test_cylinder_strike_profile() -> None:

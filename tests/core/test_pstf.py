@@ -1,4 +1,5 @@
-"""The PSTF closed forms against DESIGN.md §4 and against numerical integration."""
+"""The PSTF closed forms against the corrected equations of docs/psm.md and against numerical
+integration."""
 
 from __future__ import annotations
 
@@ -97,8 +98,8 @@ def test_above_k_max_the_target_is_not_reached(delta: float, v_c: float, v_n: fl
     assert np.max(sol.y[0]) < x_n
 
 
-def test_closed_forms_of_design_section_4() -> None:
-    """propagate equals the exponential, trigonometric and parabolic forms written in DESIGN §4."""
+def test_closed_forms_of_eq_6() -> None:
+    """propagate equals the exponential, trigonometric and parabolic forms of eq. 6 (docs/psm.md)."""
     t = np.linspace(0.0, 1.3, 50)
     x_c, v_c, c = 0.3, -0.7, 1.9
     k = 2.5

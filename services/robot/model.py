@@ -1,7 +1,9 @@
-"""Robot model for the simulated arm: URDF loading, limits and kinematics on top of Pinocchio.
+"""Robot model: URDF loading, joint limits, forward kinematics, Jacobians and link placements
+on top of Pinocchio.
 
 Everything here is pure (no bus, no files written) and allocation-light so it can run inside a
-1 kHz control loop. Conventions used throughout the arm package:
+1 kHz control loop. Conventions shared by every user of the model (the arm simulator, the teach
+mode, the obstacle monitor, the planner):
 
 * joint vectors ``q`` (rad), ``dq`` (rad/s), ``ddq`` (rad/s²) have shape ``(n,)`` where ``n`` is
   the number of actuated joints left after locking (7 for the Panda);
@@ -9,7 +11,7 @@ Everything here is pure (no bus, no files written) and allocation-light so it ca
   end-effector frame ("LOCAL_WORLD_ALIGNED" in Pinocchio's terms): positions in m, linear
   velocity m/s, linear acceleration m/s² (classical, i.e. the second time derivative of the
   position), angular velocity rad/s, angular acceleration rad/s²;
-* quaternions are ``(x, y, z, w)`` with ``w >= 0``.
+* quaternions are ``(x, y, z, w)`` with ``w >= 0`` (:mod:`services.robot.rotations`).
 """
 
 from __future__ import annotations
@@ -54,23 +56,6 @@ def panda_urdf_path() -> Path:
     return path
 
 
-def quat_xyzw_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(x, y, z, w)`` with ``w >= 0`` of a rotation matrix ``R (3, 3)``."""
-    q = pin.Quaternion(np.asarray(R, dtype=float))
-    q.normalize()
-    c = np.array([q.x, q.y, q.z, q.w])
-    return -c if c[3] < 0 else c
-
-
-def matrix_from_quat_xyzw(quat: Sequence[float] | np.ndarray) -> np.ndarray:
-    """Rotation matrix ``(3, 3)`` of a quaternion ``(x, y, z, w)`` (normalised first)."""
-    x, y, z, w = (float(v) for v in quat)
-    n = np.sqrt(x * x + y * y + z * z + w * w)
-    if not np.isfinite(n) or n == 0.0:
-        raise ValueError("quaternion has zero or non-finite norm")
-    return pin.Quaternion(w / n, x / n, y / n, z / n).toRotationMatrix()
-
-
 @dataclass(frozen=True)
 class JointLimits:
     """Per-joint limits, each of shape ``(n,)``: position (rad), velocity (rad/s), acceleration
@@ -87,23 +72,6 @@ class JointLimits:
         if dq is not None:
             ok = ok and bool(np.all(np.abs(dq) <= self.velocity + tol))
         return ok
-
-
-@dataclass(frozen=True)
-class EEState:
-    """End-effector state in the base frame (see module docstring for units).
-
-    ``position (3,)``, ``quat_xyzw (4,)``, ``rotation (3, 3)``, ``linear_velocity (3,)``,
-    ``angular_velocity (3,)``, ``linear_acceleration (3,)``, ``angular_acceleration (3,)``.
-    """
-
-    position: np.ndarray
-    quat_xyzw: np.ndarray
-    rotation: np.ndarray
-    linear_velocity: np.ndarray
-    angular_velocity: np.ndarray
-    linear_acceleration: np.ndarray
-    angular_acceleration: np.ndarray
 
 
 @dataclass

@@ -1,0 +1,168 @@
+"""The feeding scene and task, loaded from ``configs/feeding.toml``.
+
+The file has two tables (positions in m, in the base frame ``scene.frame_id``: table top
+z = 0, x forward, y to the robot's left)::
+
+    [scene]
+    frame_id = "base"
+    neutral = [0.40, 0.00, 0.40]
+    spoon = [0.50, -0.25, 0.06]
+    bowl = [0.55, 0.20, 0.10]
+    person = [0.35, 0.50, 0.45]
+    cylinder_contact = [0.45, -0.10, 0.04]
+
+    [task]
+    sequence = ["grasp_spoon", "back_to_neutral", "reach_bowl", "scoop", "reach_person"]
+
+:func:`load_feeding` validates it at load (unknown keys, missing keys, a position that is not
+three finite numbers, an empty sequence) and raises :class:`FeedingConfigError` with one line
+naming the field, e.g. ``configs/feeding.toml: scene.spoon: expected 3 finite numbers (m), got
+[0.5, -0.25]``.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+
+#: The feeding configuration shipped with the repository.
+DEFAULT_FEEDING_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "feeding.toml"
+
+#: A position ``(x, y, z)`` in m.
+Vec3 = tuple[float, float, float]
+
+
+class FeedingConfigError(ValueError):
+    """The feeding configuration cannot be read or is invalid (one line naming the field)."""
+
+
+def _vec3(value: Any) -> Vec3:
+    """``value`` as a 3-tuple of finite floats; raises ``ValueError`` otherwise."""
+    ok = (
+        isinstance(value, list | tuple)
+        and len(value) == 3
+        and all(isinstance(c, int | float) and not isinstance(c, bool) for c in value)
+        and all(math.isfinite(c) for c in value)
+    )
+    if not ok:
+        raise ValueError(f"expected 3 finite numbers (m), got {value!r}")
+    return (float(value[0]), float(value[1]), float(value[2]))
+
+
+class FeedingScene(BaseModel):
+    """Where things are: positions ``(3,)`` in m in the base frame ``frame_id``.
+
+    Attributes:
+        frame_id: base frame of the positions.
+        neutral: neutral pose of the hand (pointing down) above the table centre.
+        spoon: grasp point of the spoon's handle.
+        bowl: the bowl, at rim height.
+        person: the person's mouth.
+        cylinder_contact: contact point on the cylinder (rolled along +y).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    frame_id: str = "base"
+    neutral: Vec3
+    spoon: Vec3
+    bowl: Vec3
+    person: Vec3
+    cylinder_contact: Vec3
+
+    @field_validator("neutral", "spoon", "bowl", "person", "cylinder_contact", mode="before")
+    @classmethod
+    def _position(cls, value: Any) -> Vec3:
+        return _vec3(value)
+
+    @field_validator("frame_id")
+    @classmethod
+    def _frame(cls, value: str) -> str:
+        if not value:
+            raise ValueError("must not be empty")
+        return value
+
+
+class FeedingTask(BaseModel):
+    """The task: ``sequence`` is the order of the feeding sub-tasks (demonstration names)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    sequence: tuple[str, ...]
+
+    @field_validator("sequence")
+    @classmethod
+    def _names(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        if not value:
+            raise ValueError("must name at least one sub-task")
+        if not all(value):
+            raise ValueError("sub-task names must not be empty")
+        return value
+
+
+class FeedingConfig(BaseModel):
+    """``configs/feeding.toml``: the :class:`FeedingScene` and the :class:`FeedingTask`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    scene: FeedingScene
+    task: FeedingTask
+
+
+def _first_error(exc: ValidationError) -> str:
+    """One line for the first validation error: ``field.path: message``."""
+    err = exc.errors()[0]
+    loc = ".".join(str(p) for p in err["loc"]) or "(file)"
+    msg = str(err["msg"]).removeprefix("Value error, ")
+    if err["type"] == "missing":
+        msg = "missing"
+    elif err["type"] == "extra_forbidden":
+        msg = "unknown key"
+    elif err["type"] != "value_error" and "input" in err:
+        msg = f"{msg[:1].lower()}{msg[1:]}, got {err['input']!r}"
+    more = exc.error_count() - 1
+    return f"{loc}: {msg}" + (f" (and {more} more error{'s' if more > 1 else ''})" if more else "")
+
+
+def parse_feeding(data: dict[str, Any], source: str = "feeding config") -> FeedingConfig:
+    """Validate an already parsed TOML document.
+
+    Raises:
+        FeedingConfigError: ``"SOURCE: field.path: message"``.
+    """
+    try:
+        return FeedingConfig.model_validate(data)
+    except ValidationError as exc:
+        raise FeedingConfigError(f"{source}: {_first_error(exc)}") from None
+
+
+def load_feeding(path: str | Path | None = None) -> FeedingConfig:
+    """Load and validate the feeding configuration (default :data:`DEFAULT_FEEDING_CONFIG`).
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        FeedingConfigError: not TOML, or a field is missing, unknown or invalid.
+    """
+    p = DEFAULT_FEEDING_CONFIG if path is None else Path(path)
+    try:
+        with p.open("rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise FeedingConfigError(f"{p}: invalid TOML: {exc}") from None
+    return parse_feeding(data, str(p))
+
+
+__all__ = [
+    "DEFAULT_FEEDING_CONFIG",
+    "FeedingConfig",
+    "FeedingConfigError",
+    "FeedingScene",
+    "FeedingTask",
+    "Vec3",
+    "load_feeding",
+    "parse_feeding",
+]

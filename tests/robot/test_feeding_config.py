@@ -1,0 +1,65 @@
+"""The feeding scene and task configuration (``configs/feeding.toml``): loads, is immutable, and
+a bad value is one error line naming the field."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pydantic
+import pytest
+
+from services.tasks.feeding import DEFAULT_FEEDING_CONFIG, FeedingConfigError, load_feeding
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_shipped_config_loads() -> None:
+    cfg = load_feeding()
+    assert DEFAULT_FEEDING_CONFIG == ROOT / "configs" / "feeding.toml"
+    assert cfg.scene.frame_id == "base"
+    assert cfg.scene.spoon == (0.50, -0.25, 0.06)
+    assert cfg.task.sequence == ("grasp_spoon", "back_to_neutral", "reach_bowl", "scoop", "reach_person")
+    with pytest.raises(pydantic.ValidationError):
+        cfg.scene.bowl = (0.0, 0.0, 0.0)  # type: ignore[misc]
+
+
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (
+            "spoon = [0.50, -0.25, 0.06]",
+            "spoon = [0.50, -0.25]",
+            r"scene\.spoon: expected 3 finite numbers \(m\), got \[0\.5, -0\.25\]",
+        ),
+        ("bowl = [0.55, 0.20, 0.10]", 'bowl = [0.55, "x", 0.10]', r"scene\.bowl: expected 3 finite numbers"),
+        ("bowl = [0.55, 0.20, 0.10]", "bowl = [0.55, nan, 0.10]", r"scene\.bowl: expected 3 finite numbers"),
+        ("bowl = [0.55, 0.20, 0.10]", "bowl = [0.55, true, 0.10]", r"scene\.bowl: expected 3 finite numbers"),
+        ("person = [0.35, 0.50, 0.45]", "persn = [0.35, 0.50, 0.45]", r"scene\.person: missing"),
+        ('frame_id = "base"', 'frame_id = "base"\ntable = 1', r"scene\.table: unknown key"),
+        ('sequence = ["grasp_spoon",', 'sequence = [] #', r"task\.sequence: must name at least one sub-task"),
+        ('sequence = ["grasp_spoon",', "sequence = 3 #", r"task\.sequence: input should be a valid tuple"),
+        ("[task]", "[task", r"invalid TOML"),
+    ],
+)
+def test_bad_value_names_the_field(tmp_path: Path, old: str, new: str, message: str) -> None:
+    text = DEFAULT_FEEDING_CONFIG.read_text()
+    assert old in text
+    bad = tmp_path / "feeding.toml"
+    bad.write_text(text.replace(old, new, 1))
+    with pytest.raises(FeedingConfigError, match=message) as err:
+        load_feeding(bad)
+    assert "\n" not in str(err.value) and str(err.value).startswith(str(bad))
+
+
+def test_cli_reports_one_line(tmp_path: Path) -> None:
+    bad = tmp_path / "feeding.toml"
+    bad.write_text(DEFAULT_FEEDING_CONFIG.read_text().replace("bowl = [0.55, 0.20, 0.10]", "bowl = [1, 2]"))
+    proc = subprocess.run(
+        [sys.executable, "-m", "services.cli", "teach", "--list", "--scene", str(bad)],
+        cwd=ROOT, capture_output=True, text=True, timeout=60,
+    )
+    assert proc.returncode == 2
+    expected = f"psm teach: error: {bad}: scene.bowl: expected 3 finite numbers (m), got [1, 2]"
+    assert proc.stderr.strip() == expected
