@@ -44,7 +44,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def dispatch(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> int:
     """Parse ``argv`` with ``parser`` and run the chosen sub-command: a user error (bad file,
-    config or shape) is one line on stderr and exit code 2, never a traceback."""
+    config or shape) is one line on stderr and exit code 2, never a traceback. A process started
+    by the supervisor is bound to it first (it ends when the supervisor dies)."""
+    from services.supervisor import bind_to_supervisor
+
+    bind_to_supervisor()
     args = parser.parse_args(argv)
     if getattr(args, "version", False):
         from importlib.metadata import version
@@ -82,9 +86,6 @@ def module_main(
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the ``psm`` command line; returns the process exit code."""
-    from services.supervisor import bind_to_supervisor
-
-    bind_to_supervisor()
     return dispatch(build_parser(), argv)
 
 if __name__ == "__main__":

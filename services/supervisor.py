@@ -101,6 +101,7 @@ class ManagedProcess:
         full_env = dict(os.environ if env is None else env)
         full_env[SUPERVISOR_PID_ENV] = str(os.getpid())
         full_env.setdefault("PYTHONUNBUFFERED", "1")
+        full_env.setdefault("PYTHONFAULTHANDLER", "1")  # SIGABRT dumps every thread's stack
         full_env.setdefault("RUST_LOG", "error")
         root = str(Path(__file__).resolve().parents[1])
         full_env["PYTHONPATH"] = root + os.pathsep + full_env.get("PYTHONPATH", "")
@@ -121,6 +122,21 @@ class ManagedProcess:
     def alive(self) -> bool:
         """True while the process runs."""
         return self.popen.poll() is None
+
+    def poll(self) -> int | None:
+        """The exit code, or ``None`` while running (as ``subprocess.Popen.poll``)."""
+        rc = self.popen.poll()
+        if rc is not None:
+            self._mark_ended()
+        return rc
+
+    def send_signal(self, sig: int) -> None:
+        """Send ``sig`` to the process (as ``subprocess.Popen.send_signal``)."""
+        self.signal(sig)
+
+    def kill(self) -> None:
+        """SIGKILL the process."""
+        self.signal(signal.SIGKILL)
 
     @property
     def returncode(self) -> int | None:
@@ -165,11 +181,15 @@ class ManagedProcess:
             self.ended = time.monotonic()
 
     def stop(self, timeout_s: float = 10.0) -> int:
-        """SIGTERM, wait up to ``timeout_s``, then SIGKILL the process group; always reaps.
-        Returns the exit code."""
+        """SIGTERM, wait up to ``timeout_s``; a process still running then gets SIGABRT (its
+        log gets the stack of every thread) and, 3 s later, SIGKILL of its process group.
+        Always reaps; returns the exit code."""
         try:
             self.signal(signal.SIGTERM)
             rc = self.wait(timeout_s)
+            if rc is None:
+                self.signal(signal.SIGABRT)
+                rc = self.wait(3.0)
             if rc is None:
                 with contextlib.suppress(ProcessLookupError, PermissionError):
                     os.killpg(self.pid, signal.SIGKILL)

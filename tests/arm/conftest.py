@@ -4,10 +4,6 @@ test process, multicast off) and helpers to run the real arm / probe / recorder 
 from __future__ import annotations
 
 import contextlib
-import os
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -18,14 +14,9 @@ from typing import Any
 
 import pytest
 
+from services.supervisor import ManagedProcess, free_port
+
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def free_port() -> int:
-    """A free TCP port on 127.0.0.1."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 class Bus:
@@ -39,33 +30,28 @@ class Bus:
         self.session = open_session(
             ZenohConfig(mode="router", listen=[self.endpoint], multicast=False, gossip=False)
         )
-        self.procs: list[subprocess.Popen[bytes]] = []
-        self.logs: dict[int, Any] = {}
+        self.procs: list[ManagedProcess] = []
+        self._logdir = tempfile.TemporaryDirectory()
 
     @property
     def client_args(self) -> list[str]:
         """Bus flags for a spawned service."""
         return ["--mode", "client", "--connect", self.endpoint, "--no-multicast", "--log-level", "WARNING"]
 
-    def spawn(self, module: str, *args: str) -> subprocess.Popen[bytes]:
-        """Start ``python -m module args`` (connected to this bus) and remember its PID."""
-        log = tempfile.TemporaryFile()  # noqa: SIM115 -- closed in close()
-        proc = subprocess.Popen(
+    def spawn(self, module: str, *args: str) -> ManagedProcess:
+        """Start ``python -m module args`` (connected to this bus) and remember it."""
+        name = f"{module.rsplit('.', 1)[-1]}-{len(self.procs)}"
+        proc = ManagedProcess(
+            name,
             [sys.executable, "-m", module, *args, *self.client_args],
-            cwd=ROOT,
-            stdout=subprocess.DEVNULL,
-            stderr=log,
-            env={**os.environ, "PYTHONFAULTHANDLER": "1"},
+            Path(self._logdir.name) / f"{name}.log",
         )
         self.procs.append(proc)
-        self.logs[proc.pid] = log
         return proc
 
-    def stderr(self, proc: subprocess.Popen[bytes]) -> str:
-        """What the process wrote to stderr so far."""
-        log = self.logs[proc.pid]
-        log.seek(0)
-        return log.read().decode(errors="replace")
+    def stderr(self, proc: ManagedProcess) -> str:
+        """What the process wrote so far."""
+        return proc.log_text()
 
     def collect(self, key: str, decode: bool = True) -> tuple[list[Any], Any]:
         """Subscribe ``key`` on the router session; returns (list being filled, subscriber)."""
@@ -101,26 +87,14 @@ class Bus:
 
     def close(self) -> None:
         for p in self.procs:
-            stop(p)
-        for log in self.logs.values():
-            log.close()
+            p.stop()
+        self._logdir.cleanup()
         self.session.close()
 
 
-def stop(proc: subprocess.Popen[bytes], timeout_s: float = 10.0) -> int:
-    """Stop a spawned process by PID: SIGTERM, then SIGKILL after ``timeout_s``."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            proc.send_signal(signal.SIGABRT)  # faulthandler: dump every thread's stack
-            try:
-                proc.wait(3)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait(5)
-    return int(proc.returncode)
+def stop(proc: ManagedProcess, timeout_s: float = 10.0) -> int:
+    """Stop a spawned process by PID (SIGTERM; stacks dumped and SIGKILL if it hangs)."""
+    return proc.stop(timeout_s)
 
 
 def wait_until(pred: Callable[[], bool], timeout_s: float, what: str) -> None:

@@ -8,7 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from .gt_procs import Procs, free_port, wait_until
+from services.supervisor import free_port
+
+from .gt_procs import Procs, wait_until
 
 
 @pytest.fixture
