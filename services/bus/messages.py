@@ -94,6 +94,7 @@ __all__ = [
     "message_type_for_encoding",
     "schema_name_of",
     "stamp_ns_of",
+    "validate_key_expr",
 ]
 
 #: Default key-expression prefix; two cells on one network use two prefixes.
@@ -187,12 +188,21 @@ class Topic:
     """One stream on the bus: its key expression, message type and QoS.
 
     ``msg_type`` is ``None`` for liveliness tokens (no payload) and for wildcard selectors
-    that match several types (e.g. ``<prefix>/**``).
+    that match several types (e.g. ``<prefix>/**``). ``commands`` names the service that acts
+    on this stream's messages (``"arm"`` for the arm command topic; ``""`` for every stream
+    that only informs): the replayer leaves command streams out unless asked, and refuses
+    them while that service is alive (its liveliness token ``Keys.liveliness(commands)``).
     """
 
     key: str
     msg_type: type[Message] | None
     qos: QoS = QOS_DATA
+    commands: str = ""
+
+    @property
+    def is_command(self) -> bool:
+        """True if publishing on this topic makes a service act (e.g. moves the arm)."""
+        return bool(self.commands)
 
     def __str__(self) -> str:
         return self.key
@@ -213,6 +223,28 @@ def _check_name(kind: str, name: str) -> str:
             "'?', '#' or whitespace"
         )
     return name
+
+
+def validate_key_expr(expr: str) -> str:
+    """Check a key expression given by a user (``psm echo KEYEXPR``, ``psm record -k``,
+    ``psm replay --topics/--exclude``) before anything is declared with it; returns it.
+
+    Raises :class:`InvalidKeyError` naming the expression and Zenoh's reason, e.g.
+    ``invalid key expression 'bad//key': empty chunks are forbidden, ...``.
+    """
+    import zenoh
+
+    from services.bus.errors import zenoh_reason
+
+    if not isinstance(expr, str):
+        raise InvalidKeyError(f"invalid key expression {expr!r}: not a string")
+    try:
+        zenoh.KeyExpr(expr)
+    except zenoh.ZError as exc:
+        reason = zenoh_reason(exc)
+        reason = re.sub(r"^Invalid Key Expr `.*?`:\s*", "", reason)
+        raise InvalidKeyError(f"invalid key expression {expr!r}: {reason}") from None
+    return expr
 
 
 def _check_prefix(prefix: str) -> str:
@@ -248,7 +280,7 @@ class Keys:
     @property
     def arm_command(self) -> Topic:
         """``<prefix>/arm/command`` — :class:`ArmCommand`, one per :class:`ArmState`."""
-        return Topic(self._k("arm", "command"), ArmCommand, QOS_CONTROL)
+        return Topic(self._k("arm", "command"), ArmCommand, QOS_CONTROL, commands="arm")
 
     @property
     def arm_transforms(self) -> Topic:
