@@ -68,15 +68,15 @@ def _topic_matcher(topics: Iterable[str] | str | None):  # type: ignore[no-untyp
         return None
     if isinstance(topics, str):
         topics = [topics]
-    exprs = list(topics)
+    from services.bus.messages import validate_key_expr
+
+    exprs = [validate_key_expr(t) for t in topics]
     if not any(ch in t for t in exprs for ch in "*$"):
         wanted = set(exprs)
         return wanted.__contains__
     import zenoh
 
-    from services.bus.messages import validate_key_expr
-
-    kes = [zenoh.KeyExpr(validate_key_expr(t)) for t in exprs]
+    kes = [zenoh.KeyExpr(t) for t in exprs]
     cache: dict[str, bool] = {}
 
     def match(topic: str) -> bool:

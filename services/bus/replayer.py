@@ -127,11 +127,24 @@ def catalogue_topic(key: str) -> Any:
     return None if hit is None else hit[1]
 
 
-def _alive(session: Any, key: str, timeout_s: float = 2.0) -> bool:
-    """True if a liveliness token matching ``key`` is alive (asks the network; the answers
-    end when every node replied or after ``timeout_s``)."""
-    return any(reply.ok is not None
-               for reply in session.liveliness().get(key, timeout=timeout_s))
+def _alive(session: Any, keys: list[str], seen: list[str], settle_s: float = 1.0) -> list[str]:
+    """The liveliness tokens among ``keys`` that are alive, asked for ``settle_s`` seconds.
+
+    A freshly opened session learns the network's tokens within a few ms; a single query right
+    after opening can miss them, so the network is asked every 50 ms until ``settle_s``, and
+    ``seen`` (filled by history-enabled liveliness subscribers on ``keys``) is checked too.
+    """
+    deadline = time.monotonic() + settle_s
+    alive: set[str] = set()
+    while True:
+        alive.update(seen)
+        for key in keys:
+            for reply in session.liveliness().get(key, timeout=max(0.1, settle_s)):
+                if reply.ok is not None:
+                    alive.add(str(reply.ok.key_expr))
+        if alive or time.monotonic() >= deadline:
+            return sorted(alive)
+        time.sleep(0.05)
 
 
 def _declare(session: Any, key: str) -> Any:
@@ -170,8 +183,8 @@ def run_replayer(
     Raises:
         LogReadError: a file is not MCAP or has no readable message (before publishing), or
             was truncated/corrupt (after replaying its readable part).
-        ReplayRefusedError: commands were asked for and an arm is alive on the target prefix (before
-            publishing), or one appeared during the replay (the replay stops).
+        ReplayRefusedError: commands were asked for and an arm is alive on the target prefix
+            (before publishing), or one appeared during the replay (the replay stops).
         InvalidKeyError: an invalid ``--topics`` / ``--exclude`` key expression.
     """
     from services.bus.runtime import Service
@@ -213,12 +226,11 @@ def run_replayer(
         if skipped:
             svc.log.info("not replaying command keys (use --include-commands)",
                          extra={"keys": skipped})
-        for token in sorted(set(commands.values())):
-            if not force and _alive(svc.session, token):
-                raise ReplayRefusedError(
-                    f"refusing to replay {', '.join(sorted(commands))}: {token} is alive "
-                    "(a live arm would move; stop it, remap with --remap-prefix, or --force)")
-        if commands and not force:
+        tokens = sorted(set(commands.values()))
+        if tokens and force:
+            svc.log.warning("--force: replaying commands without checking for a live arm",
+                            extra={"keys": sorted(commands)})
+        elif tokens:
             import zenoh
 
             def on_token(sample: Any) -> None:
@@ -226,15 +238,21 @@ def run_replayer(
                     appeared.append(str(sample.key_expr))
                     svc.stop()
 
-            watchers = [svc.session.liveliness().declare_subscriber(token, on_token)
-                        for token in sorted(set(commands.values()))]
+            watchers = [svc.session.liveliness().declare_subscriber(t, on_token, history=True)
+                        for t in tokens]
+            alive = _alive(svc.session, tokens, appeared)
+            if alive:
+                raise ReplayRefusedError(
+                    f"refusing to replay {', '.join(sorted(commands))}: {alive[0]} is alive "
+                    "(a live arm would move; stop it, replay onto another prefix with "
+                    "--remap-prefix, or add --force)")
         svc.start()
         svc.install_signal_handlers()
         _replay(svc, rp, scans, keys, pubs, stats)
         if appeared:
-            raise ReplayRefusedError(f"stopped the replay: {appeared[0]} appeared while replaying "
-                                f"{', '.join(sorted(commands))} "
-                                f"({stats.published} messages sent)")
+            raise ReplayRefusedError(
+                f"stopped the replay: {appeared[0]} appeared while replaying "
+                f"{', '.join(sorted(commands))} ({stats.published} messages sent)")
     finally:
         for w in watchers:
             w.undeclare()

@@ -82,3 +82,44 @@ def test_demo_writes_plots(tmp_path: Path) -> None:
     assert "reach_person.mcap" in r.stdout and "reached the goal: True" in r.stdout
     for name in ("model.json", "reproduction.png", "goal_adapted.png", "goal_moved.png", "pushed.png"):
         assert (tmp_path / "demo" / name).exists()
+
+
+def _one_error_line(r: subprocess.CompletedProcess, command: str = "psm learn") -> str:
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.startswith(f"{command}: error: "), r.stderr
+    return r.stderr[len(f"{command}: error: "):].rstrip("\n")
+
+
+def test_learn_from_a_damaged_mcap_is_one_line(tmp_path: Path) -> None:
+    from services.learn_cli import DEMO_RECORDING
+
+    data = DEMO_RECORDING.read_bytes()
+    (tmp_path / "garbage.mcap").write_bytes(b"not an mcap recording\n" * 4)
+    msg = _one_error_line(run_psm("learn", str(tmp_path / "garbage.mcap")))
+    assert msg == f"{tmp_path / 'garbage.mcap'}: not an MCAP file (no MCAP magic at the start)"
+    # truncated after some complete chunks: says so and how much was readable, learns nothing
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    msg = _one_error_line(run_psm("learn", str(cut), "-o", str(tmp_path / "m.json")))
+    assert msg.startswith(f"{cut}: truncated recording (no footer): "), msg
+    assert "messages readable in the first " in msg and f"of {len(data) * 2 // 3} bytes" in msg
+    assert not (tmp_path / "m.json").exists()
+    # bytes damaged inside a chunk
+    bad = bytearray(data)
+    bad[len(data) // 2: len(data) // 2 + 32] = bytes(32)
+    (tmp_path / "bad.mcap").write_bytes(bad)
+    msg = _one_error_line(run_psm("learn", str(tmp_path / "bad.mcap")))
+    assert msg.startswith(f"{tmp_path / 'bad.mcap'}: corrupt recording at byte "), msg
+
+
+def test_command_path_names_nested_commands() -> None:
+    import argparse
+
+    from services.cli import build_parser, command_path
+
+    parser = build_parser()
+    assert command_path(parser, parser.parse_args(["serve", "router"])) == "psm serve router"
+    assert command_path(parser, parser.parse_args(["camera", "synth"])) == "psm camera synth"
+    assert command_path(parser, parser.parse_args(["learn", "x.csv"])) == "psm learn"
+    assert command_path(parser, argparse.Namespace()) == "psm"
