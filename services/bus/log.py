@@ -263,9 +263,10 @@ def read_log(
     """Yield ``(topic, message, stamp_ns)`` for every recorded bus message.
 
     ``message`` is the typed protobuf (decoded with :func:`services.bus.messages.decode`);
-    ``stamp_ns`` is the message's own stamp (the MCAP ``publish_time``; the receive time if the
-    message had none). Samples that do not decode (garbage, unknown encodings) are skipped
-    with a warning, or raise :class:`LogReadError` if ``skip_undecodable`` is false.
+    ``stamp_ns`` is the message's own stamp (the MCAP ``publish_time``, 0 a valid stamp; the
+    receive time only for a message that carried no stamp field). Samples that do not decode
+    (garbage, unknown encodings) are skipped with a warning, or raise :class:`LogReadError`
+    if ``skip_undecodable`` is false.
     """
     skipped = 0
     for s in read_samples(path, topics, strict=strict):

@@ -8,8 +8,11 @@
   ``mcap`` CLI decode the file without the project. Samples of unknown encodings are recorded
   schemaless (``message_encoding`` = the Zenoh encoding). The exact Zenoh encoding string is kept
   in the channel metadata (``zenoh_encoding``) for the replayer.
-* ``log_time`` = receive time (UNIX ns, see below), ``publish_time`` = the
-  message's own ``stamp_ns`` (falls back to the receive time), ``sequence`` = per-channel count.
+* ``log_time`` = receive time (UNIX ns, see below), always; ``publish_time`` = the message's own
+  stamp on every channel (:func:`~services.bus.messages.stamp_ns_of`: ``stamp_ns``, or the
+  Foxglove ``timestamp``), 0 included (sim time 0 in lockstep); only a message that carries no
+  stamp (unknown encoding, absent Foxglove timestamp) gets the receive time;
+  ``sequence`` = per-channel count.
 * zstd chunks of ``chunk_size`` bytes written straight to the OS (no user-space buffering), and a
   chunk is closed at least every ``flush_interval_s``: after SIGKILL the file stays readable up
   to the last complete chunk with a non-seeking reader. SIGINT/SIGTERM finalise the file
@@ -243,7 +246,8 @@ class McapSink:
         return ch
 
     def write(self, key: str, encoding: str, payload: bytes, recv_ns: int) -> None:
-        """Append one sample (``recv_ns`` = receive time, UNIX ns)."""
+        """Append one sample (``recv_ns`` = receive time, UNIX ns, the MCAP ``log_time``; the
+        ``publish_time`` is the message's own stamp, see the module docstring)."""
         with self._lock:
             if self._closed:
                 raise RecorderError("recording already finalised")
@@ -261,8 +265,9 @@ class McapSink:
                 ch = self._channel(key, encoding)
             seq = self._seq[ch] + 1
             self._seq[ch] = seq
+            stamp = stamp_ns_of(payload, encoding)
             self._writer.add_message(
-                ch, recv_ns, payload, stamp_ns_of(payload, encoding) or recv_ns, seq & 0xFFFFFFFF
+                ch, recv_ns, payload, recv_ns if stamp is None else stamp, seq & 0xFFFFFFFF
             )
             self.message_count += 1
             self._unflushed += 1
