@@ -123,3 +123,47 @@ def test_command_path_names_nested_commands() -> None:
     assert command_path(parser, parser.parse_args(["camera", "synth"])) == "psm camera synth"
     assert command_path(parser, parser.parse_args(["learn", "x.csv"])) == "psm learn"
     assert command_path(parser, argparse.Namespace()) == "psm"
+
+
+def test_headerless_csv_reads_every_row_as_a_sample(tmp_path: Path, reach_demo) -> None:
+    t, X = reach_demo
+    path = tmp_path / "noheader.csv"
+    np.savetxt(path, np.column_stack([t, X]), delimiter=",")  # no header row
+    r = run_psm("learn", str(path), "-o", str(tmp_path / "m.json"))
+    assert r.returncode == 0, r.stderr
+    assert f"from {len(t)} samples x 3 dims (x0, x1, x2)" in r.stdout  # no sample lost
+    with_header = tmp_path / "header.csv"
+    np.savetxt(with_header, np.column_stack([t, X]), delimiter=",", header="t,x,y,z", comments="")
+    r = run_psm("learn", str(with_header), "-o", str(tmp_path / "m2.json"))
+    assert r.returncode == 0 and f"from {len(t)} samples x 3 dims (x, y, z)" in r.stdout
+    msg = _one_error_line(run_psm("learn", str(path), "--columns", "x"))
+    assert msg == f"{path}: --columns needs a header row naming the columns (the first row is numbers)"
+
+
+def test_a_demonstration_that_does_not_move_is_one_line(tmp_path: Path) -> None:
+    t = np.linspace(0.0, 2.0, 1001)
+    still = tmp_path / "still.csv"
+    np.savetxt(still, np.column_stack([t, np.full((t.size, 3), 0.3)]), delimiter=",",
+               header="t,x,y,z", comments="")
+    msg = _one_error_line(run_psm("learn", str(still), "-o", str(tmp_path / "m.json")))
+    assert msg == "demonstration does not move: max displacement 0 m over 2 s"
+    assert not (tmp_path / "m.json").exists()
+    # an MCAP of the arm at rest: one joint state repeated for 2 s of sim time
+    from services.bus.log import read_log
+    from services.bus.messages import ArmState, Keys, encode
+    from services.bus.recorder import McapSink
+    from services.learn_cli import DEMO_RECORDING
+
+    first = next(m for _k, m, _s in read_log(DEMO_RECORDING) if isinstance(m, ArmState))
+    rest = tmp_path / "rest.mcap"
+    sink = McapSink(rest, metadata={"project_version": "test"})
+    for i in range(1001):
+        msg_i = ArmState()
+        msg_i.CopyFrom(first)
+        msg_i.tick, msg_i.sim_time_ns = i, i * 2_000_000
+        msg_i.stamp_ns = msg_i.sim_time_ns
+        payload, enc = encode(msg_i)
+        sink.write(Keys().arm_state.key, enc, payload, 1_000 + i)
+    sink.close()
+    msg = _one_error_line(run_psm("learn", str(rest), "-o", str(tmp_path / "m.json")))
+    assert msg == "demonstration does not move: max displacement 0 m over 2 s"
