@@ -13,6 +13,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from psm.errors import PSMError
+from services.bus.errors import BusError
 
 #: Modules that contribute sub-commands, in the order they appear in ``psm --help``.
 COMMAND_MODULES: tuple[str, ...] = (
@@ -43,9 +44,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def dispatch(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None) -> int:
-    """Parse ``argv`` with ``parser`` and run the chosen sub-command: a user error (bad file,
-    config or shape) is one line on stderr and exit code 2, never a traceback. A process started
-    by the supervisor is bound to it first (it ends when the supervisor dies)."""
+    """Parse ``argv`` with ``parser`` and run the chosen sub-command.
+
+    This is the one place where errors become output: a user error (bad file, config, shape,
+    key expression; a bus that cannot be reached) is one line on stderr,
+    ``<command path>: error: <message>`` (e.g. ``psm serve router: error: ...``), and exit
+    code 2, never a traceback. Sub-commands raise and do not print their own errors.
+    A process started by the supervisor is bound to it first (it ends when the supervisor dies).
+    """
     from services.supervisor import bind_to_supervisor
 
     bind_to_supervisor()
@@ -62,16 +68,35 @@ def dispatch(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except (PSMError, CLIError, OSError, ValueError) as exc:
-        print(f"{parser.prog} {args.command}: error: {_error_text(exc)}", file=sys.stderr)
+    except (PSMError, CLIError, BusError, OSError, ValueError) as exc:
+        print(f"{command_path(parser, args)}: error: {_error_text(exc)}", file=sys.stderr)
         return 2
 
 
+def command_path(parser: argparse.ArgumentParser, args: argparse.Namespace) -> str:
+    """The program and sub-command names as typed, e.g. ``psm serve router`` or
+    ``psm camera synth``: follows the chosen sub-parser at every level."""
+    prog = parser.prog
+    current: argparse.ArgumentParser | None = parser
+    while current is not None:
+        action = next(
+            (a for a in current._actions if isinstance(a, argparse._SubParsersAction)), None
+        )
+        chosen = getattr(args, action.dest, None) if action is not None else None
+        if action is None or chosen is None or chosen not in action.choices:
+            break
+        current = action.choices[chosen]
+        prog = current.prog
+    return prog
+
+
 def _error_text(exc: BaseException) -> str:
-    """One line for the user: an OS error as ``FILE: reason`` (not ``[Errno 2] ...``)."""
+    """One line for the user: an OS error as ``FILE: reason`` (not ``[Errno 2] ...``); a
+    config error without its ``config error:`` prefix (the line already says ``error:``)."""
     if isinstance(exc, OSError) and exc.strerror and exc.filename is not None:
         return f"{exc.filename}: {exc.strerror.lower()}"
-    return str(exc)
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text.removeprefix("config error: ")
 
 
 def module_main(

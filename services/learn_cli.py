@@ -2,11 +2,18 @@
 
 Demonstration files:
 
-* CSV: a header row, then one row per sample; the column ``t`` (or the first column) is time [s],
-  the other columns (or those named with ``--columns``) are the positions;
+* CSV: an optional header row, then one row per sample; the column ``t`` (or the first column)
+  is time [s], the other columns (or those named with ``--columns``) are the positions. A file
+  whose first row is all numbers has no header: every row is a sample, the dimensions are named
+  ``x0, x1, ...``;
 * NPZ: arrays ``t (T,)`` and ``X (T, D)``;
 * MCAP: a recording of the arm (``psm teach`` or any run): the end-effector trajectory is taken from
-  the arm-state messages on ``--topic`` (default ``<prefix>/arm/state``).
+  the arm-state messages on ``--topic`` (default ``<prefix>/arm/state``); a truncated or corrupt
+  recording is refused (one line saying how much was readable).
+
+A demonstration that does not move (every sample within :data:`MIN_DISPLACEMENT` of the first)
+is refused with one line, e.g. ``demonstration does not move: max displacement 0.0 m over
+2.0 s``.
 """
 
 from __future__ import annotations
@@ -46,17 +53,56 @@ def load_demonstration(
         return _load_csv(path, columns)
     if suffix == ".mcap":
         from services.arm.demos import trajectory_from_recording
+        from services.bus.log import LogReadError, scan_log
 
+        scan = scan_log(path)  # LogReadError if it is not MCAP at all
+        if not scan.complete:  # never learn from the first part of a motion
+            raise LogReadError(f"{path}: {scan.problem}")
         t, X = trajectory_from_recording(path, topic=topic)
         return t, X, ["x", "y", "z"]
     raise DemonstrationError(f"{path}: unknown demonstration format '{suffix}' (use .csv, .npz or .mcap)")
 
 
+#: A demonstration whose samples all lie within this distance of the first one does not move
+#: (Euclidean, in the demonstration's units: m for arm recordings).
+MIN_DISPLACEMENT = 1e-6
+
+
+def check_motion(t: np.ndarray, X: np.ndarray) -> None:
+    """Raise :class:`DemonstrationError` if the demonstration ``t (T,) [s]``, ``X (T, D)`` does
+    not move: its largest distance from the first sample is below :data:`MIN_DISPLACEMENT`."""
+    if len(t) == 0 or X.size == 0:
+        return  # too few samples: the core's validation says so
+    reach = float(np.max(np.linalg.norm(X - X[0], axis=1)))
+    if not np.isfinite(reach):
+        return  # NaN/inf: the core's validation names the sample
+    if reach < MIN_DISPLACEMENT:
+        duration = float(t[-1] - t[0])
+        raise DemonstrationError(
+            f"demonstration does not move: max displacement {reach:.3g} m over {duration:.3g} s"
+        )
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
 def _load_csv(path: Path, columns: list[str] | None) -> tuple[np.ndarray, np.ndarray, list[str]]:
     with path.open(newline="") as fh:
-        rows = list(csv.reader(fh))
+        rows = [r for r in csv.reader(fh) if r]
+    if rows and all(_is_number(c) for c in rows[0]):  # no header: every row is a sample
+        if columns:
+            raise DemonstrationError(
+                f"{path}: --columns needs a header row naming the columns (the first row is "
+                "numbers)"
+            )
+        rows = [["t", *(f"x{d}" for d in range(len(rows[0]) - 1))], *rows]
     if len(rows) < 2:
-        raise DemonstrationError(f"{path}: a CSV demonstration needs a header row and samples")
+        raise DemonstrationError(f"{path}: a CSV demonstration needs samples (after a header row)")
     header = [h.strip() for h in rows[0]]
     time_col = header.index("t") if "t" in header else 0
     names = columns or [h for i, h in enumerate(header) if i != time_col]
@@ -65,7 +111,7 @@ def _load_csv(path: Path, columns: list[str] | None) -> tuple[np.ndarray, np.nda
         raise DemonstrationError(f"{path}: no column named {missing[0]!r} (columns: {', '.join(header)})")
     idx = [header.index(n) for n in names]
     try:
-        data = np.array([[float(r[time_col])] + [float(r[i]) for i in idx] for r in rows[1:] if r])
+        data = np.array([[float(r[time_col])] + [float(r[i]) for i in idx] for r in rows[1:]])
     except (ValueError, IndexError) as exc:
         raise DemonstrationError(f"{path}: not numeric ({exc})") from None
     return data[:, 0], data[:, 1:], names
@@ -132,6 +178,7 @@ def _segments_arg(text: str) -> str | int | list[float]:
 def cmd_learn(args: argparse.Namespace) -> int:
     """``psm learn DEMO -o MODEL``."""
     t, X, names = load_demonstration(Path(args.demo), args.columns, args.topic)
+    check_motion(t, X)
     options = {  # only what was given: the model's own defaults stay the single source
         name: value
         for name, value in (

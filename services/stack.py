@@ -239,7 +239,7 @@ def load_stack(
         try:
             configs[p.name] = load_config(cls, path, overrides=_overrides_for(cls, overrides), env=env)
         except ConfigError as exc:
-            raise ConfigError(f"{p.name}: {exc.path}" if exc.path else p.name, exc.reason) from None
+            raise ConfigError(exc.path, f"{exc.reason} (process {p.name!r})") from None
     for key, value in data.items():
         if isinstance(value, dict) and key not in owned:
             raise ConfigError(key, "no process of the stack reads this table")

@@ -44,7 +44,8 @@ def test_overrides_reach_every_process_that_has_the_field(tmp_path: Path) -> Non
 @pytest.mark.parametrize(
     ("text", "overrides", "expected"),
     [
-        ("[arm]\ndt_s = -1\n", {}, "config error: arm: arm.dt_s: Input should be greater than 0"),
+        ("[arm]\ndt_s = -1\n", {},
+         "config error: arm.dt_s: Input should be greater than 0 (got -1) (process 'arm')"),
         ("[arm]\nstart_pose = 'nowhere'\n", {}, None),
         ("[amr]\ndt_s = 0.001\n", {}, "config error: amr: no process of the stack reads this table"),
         ("[[stack.processes]]\nname = 'arm'\ncommand = ['arm']\n", {},

@@ -161,6 +161,6 @@ def test_a_bad_stack_file_is_one_error_line(tmp_path: Path) -> None:
     r = subprocess.run(psm_argv(["up", str(path)]), capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert r.returncode == 2
     assert r.stderr.strip().splitlines() == [
-        "psm up: error: config error: arm: arm.lockstep_timeout_s: Input should be greater than 0 (got -1)"
+        "psm up: error: arm.lockstep_timeout_s: Input should be greater than 0 (got -1) (process 'arm')"
     ], r.stderr
     assert sys.executable  # the command ran with this interpreter

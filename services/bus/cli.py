@@ -7,6 +7,9 @@ Other modules add their own ``psm serve <target>`` with :func:`serve_targets`::
         p = serve_targets(subparsers).add_parser("arm", help="simulated arm")
         p.set_defaults(func=run_arm)
 
+Errors are not handled here: they reach :func:`services.cli.dispatch`, which prints one line
+(``psm <command>: error: <message>``) and exits with code 2.
+
 Every command takes the common bus flags (``--config``, ``--prefix``, ``--mode``,
 ``--connect``, ``--listen``, ``--[no-]multicast``, ``--set PATH=VALUE``; see
 :mod:`services.bus.config`). Heavy imports (zenoh, mcap) happen inside the command functions.
@@ -37,8 +40,8 @@ def serve_targets(subparsers: Any) -> Any:
 
 
 def _cmd_record(args: argparse.Namespace) -> int:
-    from services.bus.config import ConfigError, config_from_args
-    from services.bus.recorder import RecorderConfig, RecorderError, run_recorder
+    from services.bus.config import config_from_args
+    from services.bus.recorder import RecorderConfig, run_recorder
 
     extra = {
         "recorder.output": args.output,
@@ -49,16 +52,11 @@ def _cmd_record(args: argparse.Namespace) -> int:
         "recorder.overwrite": True if args.overwrite else None,
         "recorder.history": args.history,
     }
-    try:
-        cfg = config_from_args(RecorderConfig, args, extra)
-        return run_recorder(cfg)
-    except (ConfigError, RecorderError) as exc:
-        print(f"psm record: {exc}", file=sys.stderr)
-        return 2
+    return run_recorder(config_from_args(RecorderConfig, args, extra))
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from services.bus.config import ConfigError, config_from_args
+    from services.bus.config import config_from_args
     from services.bus.replayer import ReplayerConfig, run_replayer
 
     extra = {
@@ -71,38 +69,25 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         "replayer.loop": True if args.loop else None,
         "replayer.wait_subscribers_s": args.wait_subscribers,
     }
-    try:
-        cfg = config_from_args(ReplayerConfig, args, extra)
-        return run_replayer(cfg)
-    except ConfigError as exc:
-        print(f"psm replay: {exc}", file=sys.stderr)
-        return 2
+    return run_replayer(config_from_args(ReplayerConfig, args, extra),
+                        include_commands=args.include_commands, force=args.force)
 
 
 def _cmd_echo(args: argparse.Namespace) -> int:
-    from services.bus.config import ConfigError, config_from_args
+    from services.bus.config import config_from_args
     from services.bus.echo import EchoConfig, run_echo
 
     extra = {"echo.key_exprs": args.key_exprs or None,
              "echo.quiet": True if args.quiet else None}
-    try:
-        return run_echo(config_from_args(EchoConfig, args, extra))
-    except ConfigError as exc:
-        print(f"psm echo: {exc}", file=sys.stderr)
-        return 2
+    return run_echo(config_from_args(EchoConfig, args, extra))
 
 
 def _cmd_router(args: argparse.Namespace) -> int:
-    from services.bus.config import ConfigError, config_from_args
+    from services.bus.config import config_from_args
     from services.bus.router import RouterConfig, run_router
 
-    try:
-        listen, args.listen = args.listen, None
-        cfg = config_from_args(RouterConfig, args, {"router.listen": listen})
-        return run_router(cfg)
-    except ConfigError as exc:
-        print(f"psm serve router: {exc}", file=sys.stderr)
-        return 2
+    listen, args.listen = args.listen, None
+    return run_router(config_from_args(RouterConfig, args, {"router.listen": listen}))
 
 
 def register(subparsers: Any) -> None:
@@ -140,6 +125,11 @@ def register(subparsers: Any) -> None:
     p.add_argument("--loop", action="store_true", help="repeat until stopped")
     p.add_argument("--wait-subscribers", type=float, metavar="SECONDS",
                    help="wait up to SECONDS for a matching subscriber before sending")
+    p.add_argument("--include-commands", action="store_true",
+                   help="also replay command streams (<prefix>/arm/command); refused while "
+                   "an arm is alive on the target prefix")
+    p.add_argument("--force", action="store_true",
+                   help="with --include-commands: replay commands even to a live arm")
     add_config_arguments(p)
     p.set_defaults(func=_cmd_replay)
 

@@ -50,11 +50,15 @@ def format_message(key: str, msg: Any, max_bytes: int = 32) -> str:
 
 
 def run_echo(cfg: EchoConfig, out: TextIO | None = None) -> int:
-    """Echo until SIGINT/SIGTERM; returns the exit code."""
-    from services.bus.messages import decode
+    """Echo until SIGINT/SIGTERM; returns the exit code.
+
+    Raises :class:`~services.bus.messages.InvalidKeyError` for an invalid key expression
+    before joining the bus."""
+    from services.bus.messages import Keys, decode, validate_key_expr
     from services.bus.runtime import Service
 
     out = out or sys.stdout
+    key_exprs = [validate_key_expr(k) for k in cfg.echo.key_exprs] or [Keys(cfg.prefix).all.key]
     svc = Service("echo", cfg)
 
     def on_sample(raw: Any) -> None:
@@ -67,7 +71,7 @@ def run_echo(cfg: EchoConfig, out: TextIO | None = None) -> int:
         if not cfg.echo.quiet:
             print(format_message(raw.key, msg, cfg.echo.max_bytes_field), file=out, flush=True)
 
-    for kx in cfg.echo.key_exprs or [svc.keys.all.key]:
+    for kx in key_exprs:
         svc.subscribe_raw(kx, on_sample)
     svc.run()
     return 0

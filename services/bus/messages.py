@@ -10,7 +10,8 @@ from :class:`Keys` and (de)serialise with :func:`encode` / :func:`decode`.
   the schema name to a protobuf ``FileDescriptorSet`` (:func:`file_descriptor_set`) that it
   stores in the MCAP channel's schema, so Foxglove and the ``mcap`` CLI decode without the project.
 * Every project message has ``int64 stamp_ns = 1`` (nanoseconds) and a sequence/tick number;
-  :func:`stamp_ns_of` reads the stamp straight from the bytes.
+  :func:`stamp_ns_of` reads the stamp (or a Foxglove message's ``timestamp``) straight from the
+  bytes: it is the MCAP ``publish_time`` of a recording.
 * Each :class:`Topic` carries its quality of service (:class:`QoS`): control-loop streams are
   express and real-time priority, camera frames are droppable, goals and obstacle sets are kept
   for late joiners.
@@ -94,6 +95,7 @@ __all__ = [
     "message_type_for_encoding",
     "schema_name_of",
     "stamp_ns_of",
+    "validate_key_expr",
 ]
 
 #: Default key-expression prefix; two cells on one network use two prefixes.
@@ -122,12 +124,16 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
     )
 }
 
-# Types whose field 1 is ``int64 stamp_ns`` (the project's convention) vs. a
-# ``google.protobuf.Timestamp timestamp = 1`` (Foxglove's CompressedImage, PoseInFrame).
+# Where each type keeps its own stamp (see :func:`stamp_ns_of`): field 1 ``int64 stamp_ns`` (the
+# project's convention), field 1 ``google.protobuf.Timestamp timestamp`` (Foxglove's
+# CompressedImage, PoseInFrame), the timestamp of the first element of a repeated field 1
+# (FrameTransforms.transforms) or of SceneUpdate's entities (field 2), else its deletions (1).
 _INT64_STAMP_TYPES = frozenset(
     name for name, cls in MESSAGE_TYPES.items() if name.startswith("psm.")
 )
 _TIMESTAMP_TYPES = frozenset({"foxglove.CompressedImage", "foxglove.PoseInFrame"})
+_FIRST_ITEM_TIMESTAMP_TYPES = frozenset({"foxglove.FrameTransforms"})
+_SCENE_TYPES = frozenset({"foxglove.SceneUpdate"})
 
 
 class MessageDecodeError(ValueError):
@@ -187,12 +193,21 @@ class Topic:
     """One stream on the bus: its key expression, message type and QoS.
 
     ``msg_type`` is ``None`` for liveliness tokens (no payload) and for wildcard selectors
-    that match several types (e.g. ``<prefix>/**``).
+    that match several types (e.g. ``<prefix>/**``). ``commands`` names the service that acts
+    on this stream's messages (``"arm"`` for the arm command topic; ``""`` for every stream
+    that only informs): the replayer leaves command streams out unless asked, and refuses
+    them while that service is alive (its liveliness token ``Keys.liveliness(commands)``).
     """
 
     key: str
     msg_type: type[Message] | None
     qos: QoS = QOS_DATA
+    commands: str = ""
+
+    @property
+    def is_command(self) -> bool:
+        """True if publishing on this topic makes a service act (e.g. moves the arm)."""
+        return bool(self.commands)
 
     def __str__(self) -> str:
         return self.key
@@ -213,6 +228,28 @@ def _check_name(kind: str, name: str) -> str:
             "'?', '#' or whitespace"
         )
     return name
+
+
+def validate_key_expr(expr: str) -> str:
+    """Check a key expression given by a user (``psm echo KEYEXPR``, ``psm record -k``,
+    ``psm replay --topics/--exclude``) before anything is declared with it; returns it.
+
+    Raises :class:`InvalidKeyError` naming the expression and Zenoh's reason, e.g.
+    ``invalid key expression 'bad//key': empty chunks are forbidden, ...``.
+    """
+    import zenoh
+
+    from services.bus.errors import zenoh_reason
+
+    if not isinstance(expr, str):
+        raise InvalidKeyError(f"invalid key expression {expr!r}: not a string")
+    try:
+        zenoh.KeyExpr(expr)
+    except zenoh.ZError as exc:
+        reason = zenoh_reason(exc)
+        reason = re.sub(r"^Invalid Key Expr `.*?`:\s*", "", reason)
+        raise InvalidKeyError(f"invalid key expression {expr!r}: {reason}") from None
+    return expr
 
 
 def _check_prefix(prefix: str) -> str:
@@ -248,7 +285,7 @@ class Keys:
     @property
     def arm_command(self) -> Topic:
         """``<prefix>/arm/command`` — :class:`ArmCommand`, one per :class:`ArmState`."""
-        return Topic(self._k("arm", "command"), ArmCommand, QOS_CONTROL)
+        return Topic(self._k("arm", "command"), ArmCommand, QOS_CONTROL, commands="arm")
 
     @property
     def arm_transforms(self) -> Topic:
@@ -487,9 +524,11 @@ def decode(
     return msg
 
 
-def _stamp_readers() -> tuple[type[Message], type[Message]]:
-    """Two tiny message types that read only field 1 of a payload (the rest is kept as
-    unknown fields): ``int64 stamp_ns = 1`` and ``Ts timestamp = 1`` (seconds, nanos)."""
+def _stamp_readers() -> tuple[type[Message], type[Message], type[Message], type[Message]]:
+    """Tiny message types that read only where a payload keeps its stamp (everything else is
+    kept as unknown fields): ``int64 stamp_ns = 1``; ``Ts timestamp = 1`` (seconds, nanos);
+    ``repeated StampTs items = 1``; SceneUpdate's ``repeated StampTs deletions = 1`` and
+    ``repeated StampTs entities = 2``."""
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
     f = descriptor_pb2.FieldDescriptorProto
@@ -504,35 +543,66 @@ def _stamp_readers() -> tuple[type[Message], type[Message]]:
     m = fdp.message_type.add(name="StampTs")
     m.field.add(name="timestamp", number=1, type=f.TYPE_MESSAGE, label=f.LABEL_OPTIONAL,
                 type_name=".psm_internal.Ts")
+    m = fdp.message_type.add(name="FirstItem")
+    m.field.add(name="items", number=1, type=f.TYPE_MESSAGE, label=f.LABEL_REPEATED,
+                type_name=".psm_internal.StampTs")
+    m = fdp.message_type.add(name="Scene")
+    m.field.add(name="deletions", number=1, type=f.TYPE_MESSAGE, label=f.LABEL_REPEATED,
+                type_name=".psm_internal.StampTs")
+    m.field.add(name="entities", number=2, type=f.TYPE_MESSAGE, label=f.LABEL_REPEATED,
+                type_name=".psm_internal.StampTs")
     pool = descriptor_pool.DescriptorPool()
     pool.Add(fdp)
-    return (
-        message_factory.GetMessageClass(pool.FindMessageTypeByName("psm_internal.StampNs")),
-        message_factory.GetMessageClass(pool.FindMessageTypeByName("psm_internal.StampTs")),
-    )
+
+    def get(name: str) -> type[Message]:
+        return message_factory.GetMessageClass(pool.FindMessageTypeByName(f"psm_internal.{name}"))
+
+    return get("StampNs"), get("StampTs"), get("FirstItem"), get("Scene")
 
 
-_STAMP_NS, _STAMP_TS = _stamp_readers()
+_STAMP_NS, _STAMP_TS, _FIRST_ITEM, _SCENE = _stamp_readers()
+_MAX_STAMP_NS = (1 << 64) - 1  # MCAP times are uint64 ns
+
+
+def _ts_ns(holder: Any) -> int | None:
+    """``holder.timestamp`` in ns, ``None`` if the field is absent."""
+    if not holder.HasField("timestamp"):
+        return None
+    return holder.timestamp.seconds * 1_000_000_000 + holder.timestamp.nanos
 
 
 def stamp_ns_of(payload: bytes, encoding: str) -> int | None:
-    """The message's own time stamp in ns, read from field 1 only (cheap enough for the
-    recorder's hot path: the rest of the message is not decoded).
+    """The message's own time stamp in ns, read from the bytes without decoding the rest (cheap
+    enough for the recorder's hot path).
 
-    Project messages carry ``int64 stamp_ns = 1``; Foxglove's ``CompressedImage`` and
-    ``PoseInFrame`` carry ``google.protobuf.Timestamp timestamp = 1``. Returns ``None`` when the
-    type has no stamp, the stamp is unset (0) or the bytes do not parse.
+    * project messages (``psm.*``): ``int64 stamp_ns = 1``; 0 is a valid stamp (sim time 0);
+    * Foxglove ``CompressedImage``, ``PoseInFrame``: ``timestamp`` (0 valid when present);
+    * Foxglove ``FrameTransforms``: the ``timestamp`` of its first transform;
+    * Foxglove ``SceneUpdate``: the ``timestamp`` of its first entity, else first deletion.
+
+    Returns ``None`` — the recorder then uses the receive time — only when the message carries
+    no stamp: a type without one (unknown encodings), an absent Foxglove timestamp or an empty
+    transform list, bytes that do not parse, or a stamp outside MCAP's ``[0, 2**64)`` ns.
     """
     name = encoding[len(ENCODING_PREFIX) :] if encoding.startswith(ENCODING_PREFIX) else ""
+    stamp: int | None = None
     try:
         if name in _INT64_STAMP_TYPES:
-            return _STAMP_NS.FromString(payload).stamp_ns or None
-        if name in _TIMESTAMP_TYPES:
-            ts = _STAMP_TS.FromString(payload).timestamp
-            return ts.seconds * 1_000_000_000 + ts.nanos or None
+            stamp = _STAMP_NS.FromString(payload).stamp_ns
+        elif name in _TIMESTAMP_TYPES:
+            stamp = _ts_ns(_STAMP_TS.FromString(payload))
+        elif name in _FIRST_ITEM_TIMESTAMP_TYPES:
+            items = _FIRST_ITEM.FromString(payload).items
+            stamp = _ts_ns(items[0]) if items else None
+        elif name in _SCENE_TYPES:
+            scene = _SCENE.FromString(payload)
+            first = scene.entities or scene.deletions
+            stamp = _ts_ns(first[0]) if first else None
     except (DecodeError, RuntimeError, ValueError, TypeError):
         return None
-    return None
+    if stamp is None or not 0 <= stamp <= _MAX_STAMP_NS:
+        return None
+    return stamp
 
 
 @cache

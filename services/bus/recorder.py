@@ -8,8 +8,11 @@
   ``mcap`` CLI decode the file without the project. Samples of unknown encodings are recorded
   schemaless (``message_encoding`` = the Zenoh encoding). The exact Zenoh encoding string is kept
   in the channel metadata (``zenoh_encoding``) for the replayer.
-* ``log_time`` = receive time (UNIX ns, see below), ``publish_time`` = the
-  message's own ``stamp_ns`` (falls back to the receive time), ``sequence`` = per-channel count.
+* ``log_time`` = receive time (UNIX ns, see below), always; ``publish_time`` = the message's own
+  stamp on every channel (:func:`~services.bus.messages.stamp_ns_of`: ``stamp_ns``, or the
+  Foxglove ``timestamp``), 0 included (sim time 0 in lockstep); only a message that carries no
+  stamp (unknown encoding, absent Foxglove timestamp) gets the receive time;
+  ``sequence`` = per-channel count.
 * zstd chunks of ``chunk_size`` bytes written straight to the OS (no user-space buffering), and a
   chunk is closed at least every ``flush_interval_s``: after SIGKILL the file stays readable up
   to the last complete chunk with a non-seeking reader. SIGINT/SIGTERM finalise the file
@@ -30,6 +33,7 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
@@ -43,17 +47,20 @@ from typing import Any, Literal
 from pydantic import Field
 
 from services.bus.config import Section, ServiceConfig, StrList, config_to_dict
+from services.bus.errors import BusError
 from services.bus.messages import (
     ENCODING_PREFIX,
     MESSAGE_TYPES,
+    Keys,
     file_descriptor_set,
     stamp_ns_of,
+    validate_key_expr,
 )
 
 __all__ = ["McapSink", "RecorderConfig", "RecorderError", "RecorderSection", "run_recorder"]
 
 
-class RecorderError(RuntimeError):
+class RecorderError(BusError):
     """The recorder cannot write its output (unwritable path, disk full, ...)."""
 
 
@@ -242,7 +249,8 @@ class McapSink:
         return ch
 
     def write(self, key: str, encoding: str, payload: bytes, recv_ns: int) -> None:
-        """Append one sample (``recv_ns`` = receive time, UNIX ns)."""
+        """Append one sample (``recv_ns`` = receive time, UNIX ns, the MCAP ``log_time``; the
+        ``publish_time`` is the message's own stamp, see the module docstring)."""
         with self._lock:
             if self._closed:
                 raise RecorderError("recording already finalised")
@@ -260,11 +268,25 @@ class McapSink:
                 ch = self._channel(key, encoding)
             seq = self._seq[ch] + 1
             self._seq[ch] = seq
+            stamp = stamp_ns_of(payload, encoding)
             self._writer.add_message(
-                ch, recv_ns, payload, stamp_ns_of(payload, encoding) or recv_ns, seq & 0xFFFFFFFF
+                ch, recv_ns, payload, recv_ns if stamp is None else stamp, seq & 0xFFFFFFFF
             )
             self.message_count += 1
             self._unflushed += 1
+
+    def discard(self) -> None:
+        """Close without finalising and delete every file this sink wrote (a recorder that
+        failed to start leaves nothing behind that would block a retry). Idempotent."""
+        with self._lock:
+            self._closed = True
+            if self._file is not None:
+                with contextlib.suppress(OSError):
+                    self._file.close()
+                self._file = None
+            for path in self.paths:
+                with contextlib.suppress(FileNotFoundError):
+                    path.unlink()
 
     def flush(self) -> None:
         """Close the open chunk (if it holds messages) and hand it to the OS."""
@@ -373,30 +395,58 @@ def _subscriptions(
 def run_recorder(cfg: RecorderConfig, *, ready: threading.Event | None = None) -> int:
     """Run the recorder until SIGINT/SIGTERM; returns the exit code (0 ok, 1 on write errors).
 
-    Raises :class:`RecorderError` before joining the bus if the output cannot be written.
+    Start-up, in this order so that a failure leaves no file behind: the key expressions are
+    validated (:class:`~services.bus.messages.InvalidKeyError`) and the output checked
+    (:class:`RecorderError`: unwritable, exists, too little space) before joining the bus; then
+    the session opens (:class:`~services.bus.errors.BusError` if it cannot); then the file is
+    created and the subscriptions declared. A failure after the file was created deletes it,
+    so a retry needs no ``--overwrite``.
     """
     from services.bus.runtime import Service, project_version
 
     rc = cfg.recorder
+    key_exprs = [validate_key_expr(k) for k in rc.key_exprs] or [Keys(cfg.prefix).all.key]
     out = Path(rc.output) if rc.output else default_output_path()
+    first = out if not (rc.split_size_mb or rc.split_duration_s) else out.with_name(
+        f"{out.stem}-0000{out.suffix}")
+    _check_writable(first, rc.min_free_mb, rc.overwrite)
     version = project_version()
-    sink = McapSink(
-        out,
-        chunk_size=rc.chunk_size,
-        compression=rc.compression,
-        split_size_mb=rc.split_size_mb,
-        split_duration_s=rc.split_duration_s,
-        min_free_mb=rc.min_free_mb,
-        overwrite=rc.overwrite,
-        metadata={
-            "project_version": version,
-            "config": json.dumps(config_to_dict(cfg), sort_keys=True),
-            "key_exprs": json.dumps(rc.key_exprs or [f"{cfg.prefix}/**"]),
-        },
-        library=f"psm-dataflow {version} recorder",
-    )
-    failed = threading.Event()
     svc = Service("recorder", cfg, version=version)
+    sink: McapSink | None = None
+    try:
+        sink = McapSink(
+            out,
+            chunk_size=rc.chunk_size,
+            compression=rc.compression,
+            split_size_mb=rc.split_size_mb,
+            split_duration_s=rc.split_duration_s,
+            min_free_mb=rc.min_free_mb,
+            overwrite=rc.overwrite,
+            metadata={
+                "project_version": version,
+                "config": json.dumps(config_to_dict(cfg), sort_keys=True),
+                "key_exprs": json.dumps(key_exprs),
+            },
+            library=f"psm-dataflow {version} recorder",
+        )
+        failed = _start_recording(svc, sink, key_exprs, rc)
+    except BaseException:
+        if sink is not None:
+            sink.discard()
+        svc.close()
+        raise
+    if ready is not None:
+        ready.set()
+    svc.run()
+    return 1 if failed.is_set() or svc.counters.dropped else 0
+
+
+def _start_recording(
+    svc: Any, sink: McapSink, key_exprs: list[str], rc: RecorderSection
+) -> threading.Event:
+    """Declare the recording subscriptions, the flusher and the finalising hook; returns the
+    event set when a write fails."""
+    failed = threading.Event()
 
     def on_sample(raw: Any) -> None:
         if failed.is_set():
@@ -425,14 +475,10 @@ def run_recorder(cfg: RecorderConfig, *, ready: threading.Event | None = None) -
                    "channels": len(sink.channel_counts)},
         )
 
-    svc.on_close(finalise)
-    key_exprs = rc.key_exprs or [svc.keys.all.key]
     for kx, handler, history in _subscriptions(svc.keys, key_exprs, rc.history, on_sample):
         svc.subscribe_raw(kx, handler, queue_size=rc.queue_size, history=history,
                           delivery="channel", timestamps=history > 0)
+    svc.on_close(finalise)
     threading.Thread(target=flusher, name="flusher", daemon=True).start()
     svc.log.info("recording", extra={"output": str(sink.paths[0]), "key_exprs": key_exprs})
-    if ready is not None:
-        ready.set()
-    svc.run()
-    return 1 if failed.is_set() or svc.counters.dropped else 0
+    return failed

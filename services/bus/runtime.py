@@ -207,14 +207,23 @@ def enable_low_latency(conf: Any) -> None:
 
 def open_session(cfg: ZenohConfig) -> Any:
     """Open a ``zenoh.Session`` from config. Zenoh's own (Rust) log level follows ``RUST_LOG``,
-    default ``error``."""
+    default ``error``.
+
+    Raises :class:`~services.bus.errors.BusError` (one line naming the endpoint) when Zenoh
+    refuses: an unreachable router in client mode, a listen endpoint already in use, a
+    malformed endpoint or config file."""
     import zenoh
+
+    from services.bus.errors import session_error
 
     global _zenoh_log_initialised
     if not _zenoh_log_initialised:
         zenoh.init_log_from_env_or("error")
         _zenoh_log_initialised = True
-    return zenoh.open(zenoh_config(cfg))
+    try:
+        return zenoh.open(zenoh_config(cfg))
+    except zenoh.ZError as exc:
+        raise session_error(exc, cfg.mode, cfg.connect, cfg.listen) from None
 
 
 def _qos_kwargs(topic: Topic) -> dict[str, Any]:

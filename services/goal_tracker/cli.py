@@ -2,7 +2,7 @@
 
 Both take the common bus flags (``--config``, ``--prefix``, ``--connect``, ``--set``…) and read
 the ``[goal_tracker]`` tables of the config; source flags are shortcuts for
-``--set goal_tracker.camera.*``.
+``--set goal_tracker.camera.*``. Errors reach :func:`services.cli.dispatch` (one line, exit 2).
 """
 
 from __future__ import annotations
@@ -33,44 +33,29 @@ def _source_overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _cmd_track(args: argparse.Namespace) -> int:
-    from psm.errors import PSMError
-    from services.bus.config import ConfigError, config_from_args
+    from services.bus.config import config_from_args
     from services.goal_tracker.config import TrackerConfig
-    from services.goal_tracker.sources import CameraOpenError
 
-    try:
-        cfg = config_from_args(TrackerConfig, args, _source_overrides(args))
-        from services.goal_tracker.service import main
+    cfg = config_from_args(TrackerConfig, args, _source_overrides(args))
+    from services.goal_tracker.service import main
 
-        return main(cfg, max_frames=args.max_frames)
-    except (ConfigError, CameraOpenError, FileNotFoundError, PSMError) as exc:
-        print(f"psm track: error: {exc}", file=sys.stderr)
-        return 2
+    return main(cfg, max_frames=args.max_frames)
 
 
 def _cmd_camera_synth(args: argparse.Namespace) -> int:
-    from psm.errors import PSMError
-    from services.bus.config import ConfigError, config_from_args
+    from services.bus.config import config_from_args
     from services.goal_tracker.config import TrackerConfig
 
-    try:
-        cfg = config_from_args(TrackerConfig, args, _source_overrides(args))
-        from services.goal_tracker.service import camera_main
+    cfg = config_from_args(TrackerConfig, args, _source_overrides(args))
+    from services.goal_tracker.service import camera_main
 
-        return camera_main(cfg, max_frames=args.max_frames)
-    except (ConfigError, PSMError) as exc:
-        print(f"psm camera synth: error: {exc}", file=sys.stderr)
-        return 2
+    return camera_main(cfg, max_frames=args.max_frames)
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from services.goal_tracker.calibration import CalibrationError, calibrate_from_images
+    from services.goal_tracker.calibration import calibrate_from_images
 
-    try:
-        result = calibrate_from_images(args.images, (args.cols, args.rows), args.square_m)
-    except (CalibrationError, FileNotFoundError) as exc:
-        print(f"psm camera calibrate: error: {exc}", file=sys.stderr)
-        return 2
+    result = calibrate_from_images(args.images, (args.cols, args.rows), args.square_m)
     print(result.as_toml())
     return 0
 

@@ -37,7 +37,7 @@ def quiet_opencv_io() -> None:
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
-class CameraOpenError(RuntimeError):
+class CameraOpenError(OSError):
     """A camera/file/stream cannot be opened (or stayed down past the give-up time)."""
 
 

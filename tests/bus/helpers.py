@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -106,3 +107,30 @@ def client_config(endpoint: str, **overrides: object):  # type: ignore[no-untype
     ov = {"zenoh.connect": [endpoint], "zenoh.multicast": False, "status_period_s": 0.2}
     ov.update(overrides)
     return load_config(ServiceConfig, env={}, overrides=ov)
+
+
+def run_psm(*args: str, timeout_s: float = 60.0,
+            env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run ``python -m services.cli ARGS`` to completion (the real ``psm`` entry point) with
+    the repository on ``PYTHONPATH`` and no ``PSM_*`` variables from the caller."""
+    full_env = {k: v for k, v in os.environ.items() if not k.startswith("PSM_")}
+    full_env["PYTHONPATH"] = str(ROOT) + os.pathsep + full_env.get("PYTHONPATH", "")
+    full_env.update(env or {})
+    return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=ROOT,
+                          env=full_env, capture_output=True, text=True, timeout=timeout_s)
+
+
+_LOG_LINE = re.compile(r"^\d{4}-\d\d-\d\dT\S+Z (DEBUG|INFO|WARNING) \S+: ")
+
+
+def one_error_line(result: subprocess.CompletedProcess, command: str) -> str:
+    """Assert ``result`` failed the way every CLI error does (exit code 2, exactly one stderr
+    line ``<command>: error: ...`` besides the service's own INFO/WARNING log lines, no
+    traceback); returns the message after ``error: ``."""
+    assert result.returncode == 2, (result.returncode, result.stderr)
+    lines = [ln for ln in result.stderr.splitlines() if not _LOG_LINE.match(ln)]
+    assert len(lines) == 1 and result.stderr.endswith("\n"), result.stderr
+    assert "Traceback" not in result.stderr
+    head = f"{command}: error: "
+    assert lines[0].startswith(head), lines[0]
+    return lines[0][len(head):]

@@ -143,16 +143,43 @@ def test_decode_never_raises_anything_else(data: bytes) -> None:
 @given(st.integers(min_value=-(2**63), max_value=2**63 - 1), st.integers(0, 2**64 - 1))
 def test_stamp_ns_of_reads_int64_field(stamp: int, tick: int) -> None:
     payload, enc = encode(ArmState(stamp_ns=stamp, tick=tick, q=[1.0, 2.0]))
-    assert stamp_ns_of(payload, enc) == (stamp or None)
+    # 0 is a valid stamp (sim time 0); a negative one cannot be an MCAP time
+    assert stamp_ns_of(payload, enc) == (stamp if stamp >= 0 else None)
 
 
-@given(st.integers(0, 2**40), st.integers(0, 999_999_999))
+@given(st.integers(0, 18_000_000_000), st.integers(0, 999_999_999))
 def test_stamp_ns_of_reads_foxglove_timestamp(sec: int, nanos: int) -> None:
     img = CompressedImage(format="jpeg", data=b"\xff\xd8" * 10)
     img.timestamp.seconds = sec
     img.timestamp.nanos = nanos
     payload, enc = encode(img)
-    assert stamp_ns_of(payload, enc) == (sec * 1_000_000_000 + nanos or None)
+    assert stamp_ns_of(payload, enc) == sec * 1_000_000_000 + nanos  # 0 included
+    img.timestamp.seconds = 2**40  # beyond MCAP's uint64 ns: no usable stamp
+    assert stamp_ns_of(*encode(img)) is None
+
+
+def test_stamp_ns_of_foxglove_containers_and_absent_stamps() -> None:
+    from services.bus.messages import FrameTransforms, PoseInFrame, SceneUpdate
+
+    no_stamp = CompressedImage(format="jpeg", data=b"x")
+    assert stamp_ns_of(*encode(no_stamp)) is None  # no timestamp field at all
+    tf = FrameTransforms()
+    assert stamp_ns_of(*encode(tf)) is None  # no transforms, no stamp
+    for i, ns in enumerate((0, 3_000_000)):
+        t = tf.transforms.add(parent_frame_id="base", child_frame_id=f"link{i}")
+        t.timestamp.FromNanoseconds(ns)
+    assert stamp_ns_of(*encode(tf)) == 0  # the first transform's stamp, 0 valid
+    tf.transforms[0].timestamp.FromNanoseconds(7_000_000_001)
+    assert stamp_ns_of(*encode(tf)) == 7_000_000_001
+    pose = PoseInFrame(frame_id="base")
+    pose.timestamp.FromNanoseconds(0)
+    assert stamp_ns_of(*encode(pose)) == 0
+    scene = SceneUpdate()
+    assert stamp_ns_of(*encode(scene)) is None
+    scene.deletions.add(id="old").timestamp.FromNanoseconds(5)
+    assert stamp_ns_of(*encode(scene)) == 5
+    scene.entities.add(id="box").timestamp.FromNanoseconds(9)
+    assert stamp_ns_of(*encode(scene)) == 9  # entities first
 
 
 def test_stamp_ns_of_garbage_is_none() -> None:

@@ -9,7 +9,7 @@ import pytest
 from mcap.reader import NonSeekingReader, make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from services.bus.log import LogReadError, read_log, read_metadata, read_samples
+from services.bus.log import LogReadError, read_log, read_metadata, read_samples, scan_log
 from services.bus.messages import ArmState, Goal, Keys, encode
 from services.bus.recorder import McapSink, RecorderError
 from services.bus.replayer import remap_key
@@ -146,3 +146,73 @@ def test_remap_key() -> None:
     assert remap_key("psmx/arm/state", "psm=sim") == "psmx/arm/state"
     assert remap_key("psm/arm/state", "psm=cell/2") == "cell/2/arm/state"
     assert remap_key("psm/arm/state", "") == "psm/arm/state"
+
+
+def test_scan_log_reports_damage_and_refuses_non_mcap(tmp_path: Path) -> None:
+    whole = scan_log(FIXTURE)
+    assert whole.complete and whole.messages == len(fixture_samples())
+    assert list(whole.keys) == list(dict.fromkeys(k for k, *_ in fixture_samples()))
+    data = FIXTURE.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 4])
+    sc = scan_log(cut)
+    assert not sc.complete and 0 < sc.messages < whole.messages
+    assert sc.problem == (f"truncated recording (no footer): {sc.messages} messages readable "
+                          f"in the first {sc.readable_bytes} of {len(data) // 4} bytes")
+    bad = bytearray(data)
+    mid = len(data) // 3
+    bad[mid:mid + 64] = bytes(64)  # zeros inside a chunk: its CRC or compression fails
+    (tmp_path / "bad.mcap").write_bytes(bad)
+    sc = scan_log(tmp_path / "bad.mcap")
+    assert sc.problem.startswith("corrupt recording at byte ") and sc.messages < whole.messages
+    with pytest.raises(LogReadError, match="corrupt recording"):
+        list(read_samples(tmp_path / "bad.mcap", strict=True))
+    (tmp_path / "g.mcap").write_bytes(b"GARBAGE!" * 20)
+    (tmp_path / "e.mcap").write_bytes(b"")
+    for name, match in (("g.mcap", "not an MCAP file"), ("e.mcap", "empty file")):
+        for read in (scan_log, lambda p: list(read_samples(p)), read_metadata,
+                     lambda p: list(read_log(p))):
+            with pytest.raises(LogReadError, match=match):
+                read(tmp_path / name)
+
+
+def test_discard_removes_the_files_of_a_failed_start(tmp_path: Path) -> None:
+    sink = _write(tmp_path / "x.mcap", 10, split_size_mb=1.0)
+    assert [p.name for p in sink.paths] == ["x-0000.mcap"] and sink.paths[0].exists()
+    sink.discard()
+    assert list(tmp_path.iterdir()) == []
+    sink.close()  # nothing left to finalise: no error
+    McapSink(tmp_path / "x.mcap", split_size_mb=1.0).close()  # a retry needs no overwrite
+
+
+def test_session_errors_name_the_endpoint() -> None:
+    from services.bus.errors import session_error, zenoh_reason
+
+    exc = RuntimeError("Unable to connect to any of [Single(tcp/127.0.0.1:7599)]!  at "
+                       "/root/.cargo/git/x/zenoh/src/net/runtime/orchestrator.rs:447.")
+    assert zenoh_reason(exc) == "Unable to connect to any of [Single(tcp/127.0.0.1:7599)]!"
+    err = session_error(exc, "client", ["tcp/127.0.0.1:7599"], [])
+    assert str(err).startswith("cannot connect to tcp/127.0.0.1:7599 (client mode): ")
+    exc = RuntimeError("Can not create a new TCP listener bound to tcp/127.0.0.1:7601: "
+                       "[127.0.0.1:7601: Address already in use (os error 98) at a/tcp.rs:61.] "
+                       "at b/unicast.rs:338.")
+    err = session_error(exc, "router", [], ["tcp/127.0.0.1:7601"])
+    assert str(err) == "cannot listen on tcp/127.0.0.1:7601 (router mode): address already in use"
+    exc = RuntimeError('Json5Err(Message { msg: "Endpoints must be of the form '
+                       '<protocol>/<address>: foo at c/endpoint.rs:615.", location: None }) '
+                       "at d/config.rs:86.")
+    assert str(session_error(exc, "peer", ["foo"], [])) == (
+        "cannot open a zenoh session (peer mode, connect foo): Endpoints must be of the form "
+        "<protocol>/<address>: foo")
+
+
+def test_validate_key_expr() -> None:
+    from services.bus.messages import InvalidKeyError, validate_key_expr
+
+    assert validate_key_expr("psm/**") == "psm/**"
+    assert validate_key_expr("psm/goals/*") == "psm/goals/*"
+    for bad in ("bad//key", "psm/", "", "psm/*x", "psm/a?b", "psm/**/**"):
+        with pytest.raises(InvalidKeyError, match=r"invalid key expression "):
+            validate_key_expr(bad)
+    with pytest.raises(InvalidKeyError, match="'bad//key'"):
+        list(read_samples(FIXTURE, topics=["bad//key"]))

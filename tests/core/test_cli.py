@@ -82,3 +82,88 @@ def test_demo_writes_plots(tmp_path: Path) -> None:
     assert "reach_person.mcap" in r.stdout and "reached the goal: True" in r.stdout
     for name in ("model.json", "reproduction.png", "goal_adapted.png", "goal_moved.png", "pushed.png"):
         assert (tmp_path / "demo" / name).exists()
+
+
+def _one_error_line(r: subprocess.CompletedProcess, command: str = "psm learn") -> str:
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.startswith(f"{command}: error: "), r.stderr
+    return r.stderr[len(f"{command}: error: "):].rstrip("\n")
+
+
+def test_learn_from_a_damaged_mcap_is_one_line(tmp_path: Path) -> None:
+    from services.learn_cli import DEMO_RECORDING
+
+    data = DEMO_RECORDING.read_bytes()
+    (tmp_path / "garbage.mcap").write_bytes(b"not an mcap recording\n" * 4)
+    msg = _one_error_line(run_psm("learn", str(tmp_path / "garbage.mcap")))
+    assert msg == f"{tmp_path / 'garbage.mcap'}: not an MCAP file (no MCAP magic at the start)"
+    # truncated after some complete chunks: says so and how much was readable, learns nothing
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    msg = _one_error_line(run_psm("learn", str(cut), "-o", str(tmp_path / "m.json")))
+    assert msg.startswith(f"{cut}: truncated recording (no footer): "), msg
+    assert "messages readable in the first " in msg and f"of {len(data) * 2 // 3} bytes" in msg
+    assert not (tmp_path / "m.json").exists()
+    # bytes damaged inside a chunk
+    bad = bytearray(data)
+    bad[len(data) // 2: len(data) // 2 + 32] = bytes(32)
+    (tmp_path / "bad.mcap").write_bytes(bad)
+    msg = _one_error_line(run_psm("learn", str(tmp_path / "bad.mcap")))
+    assert msg.startswith(f"{tmp_path / 'bad.mcap'}: corrupt recording at byte "), msg
+
+
+def test_command_path_names_nested_commands() -> None:
+    import argparse
+
+    from services.cli import build_parser, command_path
+
+    parser = build_parser()
+    assert command_path(parser, parser.parse_args(["serve", "router"])) == "psm serve router"
+    assert command_path(parser, parser.parse_args(["camera", "synth"])) == "psm camera synth"
+    assert command_path(parser, parser.parse_args(["learn", "x.csv"])) == "psm learn"
+    assert command_path(parser, argparse.Namespace()) == "psm"
+
+
+def test_headerless_csv_reads_every_row_as_a_sample(tmp_path: Path, reach_demo) -> None:
+    t, X = reach_demo
+    path = tmp_path / "noheader.csv"
+    np.savetxt(path, np.column_stack([t, X]), delimiter=",")  # no header row
+    r = run_psm("learn", str(path), "-o", str(tmp_path / "m.json"))
+    assert r.returncode == 0, r.stderr
+    assert f"from {len(t)} samples x 3 dims (x0, x1, x2)" in r.stdout  # no sample lost
+    with_header = tmp_path / "header.csv"
+    np.savetxt(with_header, np.column_stack([t, X]), delimiter=",", header="t,x,y,z", comments="")
+    r = run_psm("learn", str(with_header), "-o", str(tmp_path / "m2.json"))
+    assert r.returncode == 0 and f"from {len(t)} samples x 3 dims (x, y, z)" in r.stdout
+    msg = _one_error_line(run_psm("learn", str(path), "--columns", "x"))
+    assert msg == f"{path}: --columns needs a header row naming the columns (the first row is numbers)"
+
+
+def test_a_demonstration_that_does_not_move_is_one_line(tmp_path: Path) -> None:
+    t = np.linspace(0.0, 2.0, 1001)
+    still = tmp_path / "still.csv"
+    np.savetxt(still, np.column_stack([t, np.full((t.size, 3), 0.3)]), delimiter=",",
+               header="t,x,y,z", comments="")
+    msg = _one_error_line(run_psm("learn", str(still), "-o", str(tmp_path / "m.json")))
+    assert msg == "demonstration does not move: max displacement 0 m over 2 s"
+    assert not (tmp_path / "m.json").exists()
+    # an MCAP of the arm at rest: one joint state repeated for 2 s of sim time
+    from services.bus.log import read_log
+    from services.bus.messages import ArmState, Keys, encode
+    from services.bus.recorder import McapSink
+    from services.learn_cli import DEMO_RECORDING
+
+    first = next(m for _k, m, _s in read_log(DEMO_RECORDING) if isinstance(m, ArmState))
+    rest = tmp_path / "rest.mcap"
+    sink = McapSink(rest, metadata={"project_version": "test"})
+    for i in range(1001):
+        msg_i = ArmState()
+        msg_i.CopyFrom(first)
+        msg_i.tick, msg_i.sim_time_ns = i, i * 2_000_000
+        msg_i.stamp_ns = msg_i.sim_time_ns
+        payload, enc = encode(msg_i)
+        sink.write(Keys().arm_state.key, enc, payload, 1_000 + i)
+    sink.close()
+    msg = _one_error_line(run_psm("learn", str(rest), "-o", str(tmp_path / "m.json")))
+    assert msg == "demonstration does not move: max displacement 0 m over 2 s"

@@ -175,7 +175,8 @@ def test_unopenable_camera_is_one_error_line_and_exit_2(bus: Procs, tmp_path: Pa
     wait_until(lambda: proc.poll() is not None, 30.0, "the tracker to exit")
     assert proc.returncode == 2
     lines = [ln for ln in bus.log(proc).splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("psm track: error: cannot open file"), lines
+    # the command path as typed: ``python -m services.goal_tracker.cli track`` (dispatch)
+    assert len(lines) == 1 and lines[0].startswith(f"python -m {TRACK} track: error: cannot open file"), lines
 
 
 def test_synthetic_camera_takes_frame_times_from_the_arm_clock(bus: Procs, session: object) -> None:
