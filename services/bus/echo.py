@@ -18,6 +18,7 @@ from typing import Any, TextIO
 from pydantic import Field
 
 from services.bus.config import Section, ServiceConfig, StrList
+from services.bus.runtime import Service, ServiceApp
 
 __all__ = ["EchoConfig", "EchoSection", "format_message", "run_echo"]
 
@@ -54,24 +55,38 @@ def run_echo(cfg: EchoConfig, out: TextIO | None = None) -> int:
 
     Raises :class:`~services.bus.messages.InvalidKeyError` for an invalid key expression
     before joining the bus."""
-    from services.bus.messages import Keys, decode, validate_key_expr
-    from services.bus.runtime import Service
+    from services.bus.messages import Keys, validate_key_expr
+    from services.bus.runtime import run_service
 
-    out = out or sys.stdout
     key_exprs = [validate_key_expr(k) for k in cfg.echo.key_exprs] or [Keys(cfg.prefix).all.key]
-    svc = Service("echo", cfg)
+    return run_service(_Echo(cfg, key_exprs, out or sys.stdout))
 
-    def on_sample(raw: Any) -> None:
-        topic = svc.keys.topic_for_key(raw.key)
-        try:
-            msg = decode(raw.payload, raw.encoding, topic.msg_type if topic else None)
-        except ValueError as exc:
-            svc.record_rejection(raw.key, str(exc))
-            return
-        if not cfg.echo.quiet:
-            print(format_message(raw.key, msg, cfg.echo.max_bytes_field), file=out, flush=True)
 
-    for kx in key_exprs:
-        svc.subscribe_raw(kx, on_sample)
-    svc.run()
-    return 0
+class _Echo(ServiceApp):
+    """Subscribes to the key expressions, decodes and prints every sample."""
+
+    name = "echo"
+
+    def __init__(self, cfg: EchoConfig, key_exprs: list[str], out: TextIO) -> None:
+        super().__init__(cfg)
+        self.cfg = cfg
+        self.key_exprs = key_exprs
+        self.out = out
+
+    def setup(self, svc: Service) -> None:
+        from services.bus.messages import decode
+
+        echo = self.cfg.echo
+
+        def on_sample(raw: Any) -> None:
+            topic = svc.keys.topic_for_key(raw.key)
+            try:
+                msg = decode(raw.payload, raw.encoding, topic.msg_type if topic else None)
+            except ValueError as exc:
+                svc.record_rejection(raw.key, str(exc))
+                return
+            if not echo.quiet:
+                print(format_message(raw.key, msg, echo.max_bytes_field), file=self.out, flush=True)
+
+        for kx in self.key_exprs:
+            svc.subscribe_raw(kx, on_sample)

@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import os
 import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +38,7 @@ __all__ = [
     "read_metadata",
     "read_samples",
     "scan_log",
+    "topic_matcher",
 ]
 
 _log = logging.getLogger("psm.log")
@@ -63,7 +64,9 @@ class RecordedSample:
     sequence: int
 
 
-def _topic_matcher(topics: Iterable[str] | str | None):  # type: ignore[no-untyped-def]
+def topic_matcher(topics: Iterable[str] | str | None) -> Callable[[str], bool] | None:
+    """A predicate that is true for keys matching any of the key expressions ``topics``
+    (``None``: no filter)."""
     if topics is None:
         return None
     if isinstance(topics, str):
@@ -202,7 +205,7 @@ def read_samples(
     """
     from mcap.records import Channel, Message, Schema
 
-    match = _topic_matcher(topics)
+    match = topic_matcher(topics)
     path = Path(path)
     reader = _Pass(path)
     schemas: dict[int, object] = {}

@@ -56,6 +56,7 @@ from services.bus.messages import (
     stamp_ns_of,
     validate_key_expr,
 )
+from services.bus.runtime import Service, ServiceApp, run_service
 
 __all__ = ["McapSink", "RecorderConfig", "RecorderError", "RecorderSection", "run_recorder"]
 
@@ -402,43 +403,66 @@ def run_recorder(cfg: RecorderConfig, *, ready: threading.Event | None = None) -
     created and the subscriptions declared. A failure after the file was created deletes it,
     so a retry needs no ``--overwrite``.
     """
-    from services.bus.runtime import Service, project_version
-
     rc = cfg.recorder
     key_exprs = [validate_key_expr(k) for k in rc.key_exprs] or [Keys(cfg.prefix).all.key]
     out = Path(rc.output) if rc.output else default_output_path()
     first = out if not (rc.split_size_mb or rc.split_duration_s) else out.with_name(
         f"{out.stem}-0000{out.suffix}")
     _check_writable(first, rc.min_free_mb, rc.overwrite)
-    version = project_version()
-    svc = Service("recorder", cfg, version=version)
-    sink: McapSink | None = None
-    try:
-        sink = McapSink(
-            out,
-            chunk_size=rc.chunk_size,
-            compression=rc.compression,
-            split_size_mb=rc.split_size_mb,
-            split_duration_s=rc.split_duration_s,
-            min_free_mb=rc.min_free_mb,
-            overwrite=rc.overwrite,
-            metadata={
-                "project_version": version,
-                "config": json.dumps(config_to_dict(cfg), sort_keys=True),
-                "key_exprs": json.dumps(key_exprs),
-            },
-            library=f"psm-dataflow {version} recorder",
-        )
-        failed = _start_recording(svc, sink, key_exprs, rc)
-    except BaseException:
-        if sink is not None:
-            sink.discard()
-        svc.close()
-        raise
-    if ready is not None:
-        ready.set()
-    svc.run()
-    return 1 if failed.is_set() or svc.counters.dropped else 0
+    app = _Recorder(cfg, out, key_exprs, ready)
+    run_service(app)
+    # after the close: the subscriptions are drained and the file is finalised
+    return 1 if app.failed.is_set() or app.dropped else 0
+
+
+class _Recorder(ServiceApp):
+    """Writes every sample of the key expressions to MCAP (see the module docstring)."""
+
+    name = "recorder"
+
+    def __init__(
+        self, cfg: RecorderConfig, out: Path, key_exprs: list[str], ready: threading.Event | None
+    ) -> None:
+        super().__init__(cfg)
+        self.cfg, self.out, self.key_exprs, self.ready = cfg, out, key_exprs, ready
+        self.sink: McapSink | None = None
+        self.failed = threading.Event()
+        self._svc: Service | None = None
+
+    def setup(self, svc: Service) -> None:
+        self._svc = svc
+        rc = self.cfg.recorder
+        try:
+            self.sink = McapSink(
+                self.out,
+                chunk_size=rc.chunk_size,
+                compression=rc.compression,
+                split_size_mb=rc.split_size_mb,
+                split_duration_s=rc.split_duration_s,
+                min_free_mb=rc.min_free_mb,
+                overwrite=rc.overwrite,
+                metadata={
+                    "project_version": svc.version,
+                    "config": json.dumps(config_to_dict(self.cfg), sort_keys=True),
+                    "key_exprs": json.dumps(self.key_exprs),
+                },
+                library=f"psm-dataflow {svc.version} recorder",
+            )
+            self.failed = _start_recording(svc, self.sink, self.key_exprs, rc)
+        except BaseException:
+            if self.sink is not None:
+                self.sink.discard()
+            raise
+
+    def loop(self, svc: Service) -> None:
+        if self.ready is not None:
+            self.ready.set()
+        svc.wait()
+
+    @property
+    def dropped(self) -> int:
+        """Samples dropped by the subscriptions (0 unless a queue overflowed)."""
+        return self._svc.counters.dropped if self._svc is not None else 0
 
 
 def _start_recording(

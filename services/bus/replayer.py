@@ -37,8 +37,9 @@ from pydantic import Field
 
 from services.bus.config import ConfigError, Section, ServiceConfig, StrList
 from services.bus.errors import BusError
-from services.bus.log import LogReadError, _topic_matcher, read_samples, scan_log
+from services.bus.log import LogReadError, read_samples, scan_log, topic_matcher
 from services.bus.messages import validate_key_expr
+from services.bus.runtime import Service, ServiceApp, run_service
 
 __all__ = ["ReplayRefusedError", "ReplayerConfig", "ReplayerSection", "remap_key", "run_replayer"]
 
@@ -183,8 +184,6 @@ def run_replayer(
             (before publishing), or one appeared during the replay (the replay stops).
         InvalidKeyError: an invalid ``--topics`` / ``--exclude`` key expression.
     """
-    from services.bus.runtime import Service
-
     rp = cfg.replayer
     for k in [*rp.topics, *rp.exclude]:
         validate_key_expr(k)
@@ -195,8 +194,8 @@ def run_replayer(
     for sc in scans:
         if sc.messages == 0:
             raise LogReadError(f"{sc.path}: {sc.problem or 'no messages'}; nothing to replay")
-    match = _topic_matcher(rp.topics) if rp.topics else None
-    exclude = _topic_matcher(rp.exclude) if rp.exclude else None
+    match = topic_matcher(rp.topics) if rp.topics else None
+    exclude = topic_matcher(rp.exclude) if rp.exclude else None
     keys: dict[str, str] = {}
     for sc in scans:
         for key, enc in sc.keys.items():
@@ -213,17 +212,41 @@ def run_replayer(
     for key in skipped:
         del keys[key]
         del commands[key]
-    svc = Service("replayer", cfg)
-    stats = ReplayStats()
-    pubs: dict[str, Any] = {}
-    appeared: list[str] = []
-    watchers: list[Any] = []
-    try:
-        if skipped:
+    app = _Replayer(cfg, scans, keys, commands, skipped, force)
+    run_service(app)
+    damaged = [sc for sc in scans if not sc.complete]
+    if damaged:
+        sc = damaged[0]
+        raise LogReadError(f"{sc.path}: {sc.problem}; replayed {app.stats.published} messages up to "
+                           "there")
+    return 0
+
+
+class _Replayer(ServiceApp):
+    """Republishes the recorded keys; with command keys, refuses (and stops) while the
+    commanded service is alive."""
+
+    name = "replayer"
+
+    def __init__(
+        self, cfg: ReplayerConfig, scans: list[Any], keys: dict[str, str],
+        commands: dict[str, str], skipped: list[str], force: bool,
+    ) -> None:
+        super().__init__(cfg)
+        self.rp = cfg.replayer
+        self.scans, self.keys, self.commands, self.skipped, self.force = scans, keys, commands, skipped, force
+        self.stats = ReplayStats()
+        self.pubs: dict[str, Any] = {}
+        self.appeared: list[str] = []
+        self.watchers: list[Any] = []
+
+    def setup(self, svc: Service) -> None:
+        commands = self.commands
+        if self.skipped:
             svc.log.info("not replaying command keys (use --include-commands)",
-                         extra={"keys": skipped})
+                         extra={"keys": self.skipped})
         tokens = sorted(set(commands.values()))
-        if tokens and force:
+        if tokens and self.force:
             svc.log.warning("--force: replaying commands without checking for a live arm",
                             extra={"keys": sorted(commands)})
         elif tokens:
@@ -231,36 +254,30 @@ def run_replayer(
 
             def on_token(sample: Any) -> None:
                 if sample.kind == zenoh.SampleKind.PUT:
-                    appeared.append(str(sample.key_expr))
+                    self.appeared.append(str(sample.key_expr))
                     svc.stop()
 
-            watchers = [svc.session.liveliness().declare_subscriber(t, on_token, history=True)
-                        for t in tokens]
-            alive = _alive(svc.session, tokens, appeared)
+            self.watchers = [svc.session.liveliness().declare_subscriber(t, on_token, history=True)
+                             for t in tokens]
+            alive = _alive(svc.session, tokens, self.appeared)
             if alive:
                 raise ReplayRefusedError(
                     f"refusing to replay {', '.join(sorted(commands))}: {alive[0]} is alive "
                     "(a live arm would move; stop it, replay onto another prefix with "
                     "--remap-prefix, or add --force)")
-        svc.start()
-        svc.install_signal_handlers()
-        _replay(svc, rp, scans, keys, pubs, stats)
-        if appeared:
+
+    def loop(self, svc: Service) -> None:
+        _replay(svc, self.rp, self.scans, self.keys, self.pubs, self.stats)
+        if self.appeared:
             raise ReplayRefusedError(
-                f"stopped the replay: {appeared[0]} appeared while replaying "
-                f"{', '.join(sorted(commands))} ({stats.published} messages sent)")
-    finally:
-        for w in watchers:
+                f"stopped the replay: {self.appeared[0]} appeared while replaying "
+                f"{', '.join(sorted(self.commands))} ({self.stats.published} messages sent)")
+
+    def teardown(self, svc: Service) -> None:
+        for w in self.watchers:
             w.undeclare()
-        for p in pubs.values():
+        for p in self.pubs.values():
             p.undeclare()
-        svc.close()
-    damaged = [sc for sc in scans if not sc.complete]
-    if damaged:
-        sc = damaged[0]
-        raise LogReadError(f"{sc.path}: {sc.problem}; replayed {stats.published} messages up to "
-                           "there")
-    return 0
 
 
 def _replay(

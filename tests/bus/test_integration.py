@@ -220,10 +220,11 @@ def test_cli_errors_are_one_line(procs, tmp_path) -> None:  # type: ignore[no-un
     lines = p.stderr().strip().splitlines()
     assert len(lines) == 1 and "cannot create directory" in lines[0], lines
     p = procs(["-m", "services.cli", "record", "-o", str(tmp_path / "y.mcap")], "rec_env",
-              env={"PSM_ZENOH_MODE": "x"})
+              env={"PSM_ZENOH__MODE": "x"})
     assert p.wait(30) == 2
     assert p.stderr() == (
-        "psm record: error: zenoh.mode: expected one of peer|client|router, got 'x'\n")
+        "psm record: error: zenoh.mode (from $PSM_ZENOH__MODE): "
+        "Input should be 'peer', 'client' or 'router' (got 'x')\n")
     assert not (tmp_path / "y.mcap").exists()
 
 
