@@ -10,7 +10,7 @@ deterministic):
 * ``hold``  — PD to the first state's EE position and orientation;
 * ``accel`` — constant EE linear acceleration ``--accel`` (m/s²), orientation held;
 * ``sine``  — PD tracking of ``x0 + A sin(2π f t) ŷ`` (A = ``--amplitude`` m, f = ``--frequency``
-  Hz, t = the arm's sim time);
+  Hz, t = the arm's sim time since the first state);
 * ``joint`` — constant joint accelerations ``--joint-accel`` (rad/s²);
 * ``bad``   — cycles through invalid commands (NaN, inf, out of range, wrong sizes, unspecified
   mode, zero quaternion, undecodable bytes): none of them may move the arm.
@@ -69,6 +69,7 @@ class Probe:
         self.source = source
         self.seq = 0
         self._x0: np.ndarray | None = None
+        self._t0_ns = 0  # sim time of the first state (a realtime arm's sim time is UNIX time)
         self._quat: list[float] | None = None
 
     def reply(self, state: ArmState) -> ArmCommand | bytes:
@@ -80,6 +81,7 @@ class Probe:
         if self._x0 is None:
             o = state.ee_orientation
             self._x0 = np.array([x, y, z])
+            self._t0_ns = int(state.sim_time_ns)
             self._quat = [o.x, o.y, o.z, o.w]
         x0, y0, z0 = (float(c) for c in self._x0)
         v = state.ee_linear_velocity
@@ -94,7 +96,7 @@ class Probe:
         elif pat == "hold":
             acc = [kp * (x0 - x) - kd * v.x, kp * (y0 - y) - kd * v.y, kp * (z0 - z) - kd * v.z]
         else:  # sine
-            t = state.sim_time_ns * 1e-9
+            t = (state.sim_time_ns - self._t0_ns) * 1e-9
             w, A = self.omega, self.amplitude
             s, c = math.sin(w * t), math.cos(w * t)
             yd, vyd, ayd = y0 + A * s, A * w * c, -A * w * w * s
@@ -177,7 +179,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             pub.put(reply)
 
-    sub = svc.session.declare_subscriber(keys.arm_state.key, on_state)
+    import zenoh
+
+    sub = svc.session.declare_subscriber(
+        keys.arm_state.key, zenoh.handlers.Callback(on_state, indirect=False)
+    )
     svc.on_close(sub.undeclare)
     svc.log.info("probe running", extra={"pattern": args.pattern})
     svc.run(timeout_s=args.max_runtime or None)
