@@ -342,8 +342,10 @@ class ArmService:
             sched = t0 + (sim.tick - anchor_tick) * period
             behind = (clock() - sched) // period
             if behind > 0:
-                t0, anchor_tick = self._catch_up(behind, t0, anchor_tick)
-                sched = t0 + (sim.tick - anchor_tick) * period
+                while behind > 0:  # catching up takes time too: until the current tick is due
+                    t0, anchor_tick = self._catch_up(behind, t0, anchor_tick)
+                    sched = t0 + (sim.tick - anchor_tick) * period
+                    behind = (clock() - sched) // period
             elif self._degraded_since and clock() - self._last_miss_ns > DEGRADED_HOLD_NS:
                 self._degraded_since = 0
                 self.svc.set_degraded(None)
