@@ -28,6 +28,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.bus
 	$(PY) -m benchmarks.arm
 	$(PY) -m benchmarks.goal_tracker
+	$(PY) -m benchmarks.stack
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache

@@ -17,7 +17,7 @@ PROBE_PATTERNS: dict[str, str] = {
     "hold": "PD to the first state's EE position and orientation",
     "accel": "constant EE linear acceleration --accel (m/s²), orientation held",
     "sine": "PD tracking of x0 + A sin(2π f t) along y (A = --amplitude m, f = --frequency Hz, "
-    "t = the arm's sim time)",
+    "t = the arm's sim time since the first state)",
     "joint": "constant joint accelerations --joint-accel (rad/s²)",
     "bad": "cycles through invalid commands (NaN, inf, out of range, wrong sizes, unspecified "
     "mode, zero quaternion, undecodable bytes): none of them may move the arm",

@@ -60,6 +60,7 @@ class Probe:
         self.source = source
         self.seq = 0
         self._x0: np.ndarray | None = None
+        self._t0_ns = 0  # sim time of the first state (a realtime arm's sim time is UNIX time)
         self._quat: list[float] | None = None
 
     def reply(self, state: ArmState) -> ArmCommand | bytes:
@@ -71,6 +72,7 @@ class Probe:
         if self._x0 is None:
             o = state.ee_orientation
             self._x0 = np.array([x, y, z])
+            self._t0_ns = int(state.sim_time_ns)
             self._quat = [o.x, o.y, o.z, o.w]
         x0, y0, z0 = (float(c) for c in self._x0)
         v = state.ee_linear_velocity
@@ -85,7 +87,7 @@ class Probe:
         elif pat == "hold":
             acc = [kp * (x0 - x) - kd * v.x, kp * (y0 - y) - kd * v.y, kp * (z0 - z) - kd * v.z]
         else:  # sine
-            t = state.sim_time_ns * 1e-9
+            t = (state.sim_time_ns - self._t0_ns) * 1e-9
             w, A = self.omega, self.amplitude
             s, c = math.sin(w * t), math.cos(w * t)
             yd, vyd, ayd = y0 + A * s, A * w * c, -A * w * w * s
@@ -159,7 +161,11 @@ def run(args: argparse.Namespace) -> int:
         else:
             pub.put(reply)
 
-    sub = svc.session.declare_subscriber(keys.arm_state.key, on_state)
+    import zenoh
+
+    sub = svc.session.declare_subscriber(
+        keys.arm_state.key, zenoh.handlers.Callback(on_state, indirect=False)
+    )
     svc.on_close(sub.undeclare)
     svc.log.info("probe running", extra={"pattern": args.pattern})
     svc.run(timeout_s=args.max_runtime or None)

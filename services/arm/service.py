@@ -6,8 +6,12 @@ and applies the latest valid :class:`~services.bus.messages.ArmCommand` from
 
 Clock modes (the stack's ``clock``; ``docs/architecture.md``, *Time and the control loop*):
 
-* ``realtime`` — state k is published at ``t0 + k·dt`` (wall clock); commands arriving before
-  ``t0 + (k+1)·dt`` drive the step to k+1; a later command counts as *late*.
+* ``realtime`` — state k is published at ``t0 + k·dt`` (wall clock) and stamped with the sim
+  time ``epoch0 + k·dt`` (``epoch0`` = the UNIX time at ``t0``), so the arm's clock is locked to
+  the wall clock; commands arriving before ``t0 + (k+1)·dt`` drive the step to k+1; a later
+  command counts as *late*. Ticks that could not be published within one dt of their schedule
+  are stepped through unpublished (``missed_ticks``, DEGRADED status) so the arm catches up.
+* Sim time starts at 0 in ``lockstep`` (deterministic).
 * ``lockstep`` — after publishing state k the arm waits for the command answering tick k, then
   steps at once: deterministic and as fast as the loop allows. Before the first command the arm
   re-publishes state 0 every ``lockstep_timeout_s`` (sim time does not advance without a
@@ -45,11 +49,18 @@ from services.robot.protocol import (
     frame_transforms,
     state_message,
 )
+from services.threads import limit_blas_threads
 
 SERVICE_NAME = "arm"
 
 _RING = 1 << 20  # timing samples kept (about 35 min at 500 Hz)
 _PUB_RING = 1 << 12  # publish times kept to match late commands to their state
+
+#: Realtime: the service stays DEGRADED until this long passes without a missed tick, s.
+DEGRADED_HOLD_S = 2.0
+DEGRADED_HOLD_NS = int(DEGRADED_HOLD_S * 1e9)
+#: Realtime: a longer gap (process suspended) re-anchors the schedule instead of simulating it, ns.
+MAX_CATCH_UP_NS = 5_000_000_000
 
 
 def command_inbox() -> queue.Queue[tuple[Any, ...]]:
@@ -71,7 +82,10 @@ class LoopStats:
 
     ticks: int = 0
     wall_s: float = 0.0
-    missed_ticks: int = 0  #: realtime: state published more than one dt after its schedule
+    missed_ticks: int = 0  #: realtime: ticks not published within one dt of their schedule
+    skipped_ticks: int = 0  #: realtime: missed ticks stepped through without publication
+    reanchors: int = 0  #: realtime: gaps too long to simulate (schedule re-anchored)
+    published_ticks: int = 0  #: states published
     late_commands: int = 0  #: command answering tick k arrived after tick k's deadline
     answered_ticks: int = 0  #: ticks for which an answering command arrived
     lockstep_timeouts: int = 0
@@ -112,6 +126,10 @@ class LoopStats:
             "wall_s": self.wall_s,
             "ticks_per_s": self.ticks / self.wall_s if self.wall_s > 0 else 0.0,
             "missed_ticks": self.missed_ticks,
+            "skipped_ticks": self.skipped_ticks,
+            "reanchors": self.reanchors,
+            "published_ticks": self.published_ticks,
+            "published_per_s": self.published_ticks / self.wall_s if self.wall_s > 0 else 0.0,
             "late_commands": self.late_commands,
             "answered_ticks": self.answered_ticks,
             "late_fraction": self.late_commands / self.answered_ticks if self.answered_ticks else 0.0,
@@ -127,6 +145,8 @@ class ArmService:
     def __init__(self, config: ArmConfig, service: Service | None = None) -> None:
         self.config = config
         section = config.arm
+        # Tiny matrices every tick: OpenBLAS's pool would busy-wait between ticks.
+        limit_blas_threads(1)
         self.robot = section.load_robot()
         self.sim = ArmSim(self.robot, section)
         self.svc = service or Service(SERVICE_NAME, config)
@@ -137,6 +157,13 @@ class ArmService:
         self._pub_ns = np.zeros(_PUB_RING, dtype=np.int64)
         self._pub_tick = np.full(_PUB_RING, -1, dtype=np.int64)
         self._answered = -1  # highest tick for which an answer has been seen
+        self._payload = b""  # the encoded current state (see _encode_current)
+        self._payload_tick = -1
+        self._tf_msg: Any = None
+        self._tf_slot = -1
+        self._degraded_since = 0  # perf_counter ns of the first miss of the current episode
+        self._last_miss_ns = 0
+        self._last_miss_log_ns = 0
         self._joint_names = list(self.robot.joint_names)
         self._frames = self.robot.body_frame_ids()
         rate = section.transforms_rate_hz
@@ -144,7 +171,12 @@ class ArmService:
         self._state_pub = self.svc.publisher(self.keys.arm_state)
         self._tf_pub = self.svc.publisher(self.keys.arm_transforms) if self._tf_every else None
         self._cmd_key = self.keys.arm_command.key
-        self._cmd_sub = self.svc.session.declare_subscriber(self._cmd_key, self._on_sample)
+        import zenoh
+
+        # On Zenoh's receive thread (no hop through a Python callback thread): it only enqueues.
+        self._cmd_sub = self.svc.session.declare_subscriber(
+            self._cmd_key, zenoh.handlers.Callback(self._on_sample, indirect=False)
+        )
         self.svc.on_close(self._undeclare)
         if section.watch_services:
             self.svc.watch_liveliness(section.watch_services, self._on_liveliness)
@@ -199,9 +231,9 @@ class ArmService:
             self._answered = tick
         return tick
 
-    def _publish_state(self) -> int:
-        """Publish the current state (then prepare the next step, and the transforms on their
-        ticks); returns the ``perf_counter_ns`` time of the state's ``put``."""
+    def _encode_current(self) -> None:
+        """Serialise the current state (and, on a transforms tick, its FrameTransforms, stamped
+        with the same sim time) for :meth:`_put_current`."""
         sim = self.sim
         snap = sim.snapshot()
         msg = state_message(
@@ -212,18 +244,38 @@ class ArmService:
             watchdog_tripped=sim.watchdog_tripped,
             rejected_commands=sim.counters["rejected"],
         )
-        payload = msg.SerializeToString()
+        self._payload = msg.SerializeToString()
+        self._payload_tick = snap.tick
+        self._tf_msg = None
+        if self._tf_pub is not None:
+            slot = snap.tick // self._tf_every
+            if slot != self._tf_slot:  # first tick of a transforms period (also after a skip)
+                self._tf_slot = slot
+                self._tf_msg = frame_transforms(
+                    self.robot, self._frames, snap.time_ns, self.config.arm.frame_id
+                )
+
+    def _put_current(self) -> int:
+        """Publish what :meth:`_encode_current` prepared; returns the ``perf_counter_ns`` time of
+        the state's ``put``."""
         now = time.perf_counter_ns()
-        self._state_pub.put_bytes(payload)
-        slot = snap.tick % _PUB_RING
+        self._state_pub.put_bytes(self._payload)
+        tick = self._payload_tick
+        slot = tick % _PUB_RING
         self._pub_ns[slot] = now
-        self._pub_tick[slot] = snap.tick
-        # Command-independent controller work overlaps with the command's flight time.
-        sim.prepare()
-        if self._tf_pub is not None and snap.tick % self._tf_every == 0:
-            self._tf_pub.put(
-                frame_transforms(self.robot, self._frames, snap.time_ns, self.config.arm.frame_id)
-            )
+        self._pub_tick[slot] = tick
+        self.stats.published_ticks += 1
+        if self._tf_msg is not None and self._tf_pub is not None:
+            self._tf_pub.put(self._tf_msg)
+            self._tf_msg = None
+        return now
+
+    def _publish_state(self) -> int:
+        """Lockstep: publish the current state, then prepare the next step while the command is
+        in flight; returns the ``perf_counter_ns`` time of the state's ``put``."""
+        self._encode_current()
+        now = self._put_current()
+        self.sim.prepare()
         return now
 
     def _drain(self) -> None:
@@ -236,12 +288,10 @@ class ArmService:
 
     def _wait_for_subscribers(self, timeout_s: float) -> None:
         """Lockstep: give Zenoh time to route the state to existing subscribers before tick 0
-        (uses the publisher's matching status when available)."""
-        pub = getattr(self._state_pub, "_pub", None)
+        (the publisher's matching status)."""
         deadline = time.monotonic() + timeout_s
         while (
-            pub is not None
-            and not getattr(pub, "matching_status", True)
+            self._state_pub.has_subscribers is False
             and time.monotonic() < deadline
             and not self.svc.stop_event.is_set()
         ):
@@ -269,20 +319,41 @@ class ArmService:
                 return True
 
     def run_realtime(self) -> None:
-        """Realtime loop: state k is published at ``t0 + k·dt`` by the wall clock.
+        """Realtime loop: state k is published at ``t0 + k·dt`` by the wall clock, stamped
+        ``epoch0 + k·dt`` (``epoch0`` = UNIX time at ``t0``).
 
         The step k → k+1 is computed as soon as the command answering k arrives (or at the
-        deadline ``t0 + (k+1)·dt`` without it: then with the held command or braking), and
+        deadline ``t0 + (k+1)·dt`` without it: then with the held command or braking), together
+        with state k+1's encoding and the command-independent work for the step after it, and
         state k+1 is published at its scheduled time, so the publication jitter does not
-        include the computation.
+        include the computation. A tick whose schedule has passed by a whole period before it
+        could be published (the process was not running in time) is *missed*: the simulation
+        steps through the missed ticks without publishing them (held command, watchdog, limits
+        as usual) and publishes the current tick, so sim time stays locked to the wall clock.
+        Missed ticks are counted, logged (rate-limited) and set the service DEGRADED until
+        :data:`DEGRADED_HOLD_S` passes without one.
         """
         sim, stats, period = self.sim, self.stats, self.dt_ns
         clock = time.perf_counter_ns
         t0 = clock()
+        sim.set_time_origin(time.time_ns())
+        anchor_tick = sim.tick
+        self._encode_current()
+        sim.prepare()
         while True:
-            sched = t0 + sim.tick * period
+            sched = t0 + (sim.tick - anchor_tick) * period
+            behind = (clock() - sched) // period
+            if behind > 0:
+                while behind > 0:  # catching up takes time too: until the current tick is due
+                    t0, anchor_tick = self._catch_up(behind, t0, anchor_tick)
+                    sched = t0 + (sim.tick - anchor_tick) * period
+                    behind = (clock() - sched) // period
+            elif self._degraded_since and clock() - self._last_miss_ns > DEGRADED_HOLD_NS:
+                self._degraded_since = 0
+                self.svc.set_degraded(None)
+                self.svc.log.info("realtime recovered: no missed tick for %.1f s", DEGRADED_HOLD_S)
             self._wait(sched, -1)  # stepped early: hold the state until its time
-            late = self._publish_state() - sched
+            late = self._put_current() - sched
             stats.add_jitter(late)
             if late > period:
                 stats.missed_ticks += 1
@@ -292,6 +363,45 @@ class ArmService:
             self._drain()
             sim.step()
             stats.ticks += 1
+            self._encode_current()
+            sim.prepare()
+
+    def _catch_up(self, behind: int, t0: int, anchor_tick: int) -> tuple[int, int]:
+        """The current tick's schedule passed ``behind`` whole periods ago: step through those
+        ticks without publishing them and return the (possibly re-anchored) schedule
+        ``(t0, anchor_tick)``. A gap longer than :data:`MAX_CATCH_UP_S` is not simulated: the
+        schedule is re-anchored at the current tick (sim time then lags the wall clock by the
+        gap; counted in ``reanchors``)."""
+        sim, stats, period = self.sim, self.stats, self.dt_ns
+        now = time.perf_counter_ns()
+        stats.missed_ticks += behind
+        stats.skipped_ticks += behind
+        self._last_miss_ns = now
+        if behind * period > MAX_CATCH_UP_NS:
+            stats.reanchors += 1
+            t0, anchor_tick = now, sim.tick
+        else:
+            self._drain()
+            for _ in range(behind):
+                sim.step()
+                stats.ticks += 1
+            self._encode_current()
+            sim.prepare()
+        reason = (
+            f"realtime: {stats.skipped_ticks} ticks missed "
+            f"(last gap {behind} ticks, {behind * period * 1e-6:.1f} ms)"
+        )
+        if not self._degraded_since:
+            self._degraded_since = now
+        self.svc.set_degraded(reason)
+        if now - self._last_miss_log_ns >= 1_000_000_000:
+            self._last_miss_log_ns = now
+            self.svc.log.warning(
+                "missed ticks: stepped through them, publishing the current tick",
+                extra={"gap_ticks": behind, "missed_total": stats.missed_ticks,
+                       "skipped_total": stats.skipped_ticks, "reanchors": stats.reanchors},
+            )
+        return t0, anchor_tick
 
     def run_lockstep(self) -> None:
         """Lockstep loop: tick k+1 follows as soon as the command answering tick k arrived."""

@@ -7,16 +7,18 @@
     sim.submit(command)            # the command answering state k (validated, maybe rejected)
     sim.step()                     # integrate to state k+1
 
-Time is the simulation's own: ``time_ns = tick * dt_ns``. The watchdog is in sim time too: a
-command answering tick ``c`` is used while ``(tick - c) * dt_ns <= watchdog_timeout_ns``; after
-that the arm brakes to zero velocity within its limits and never re-uses the old command.
+Time is the simulation's own: ``time_ns = time_origin_ns + tick * dt_ns`` (origin 0 unless set
+with :meth:`ArmSim.set_time_origin`, e.g. to the UNIX epoch at start for a realtime arm). The
+watchdog is in sim time too: a command answering tick ``c`` is used while
+``(tick - c) * dt_ns <= watchdog_timeout_ns``; after that the arm brakes to zero velocity within
+its limits and never re-uses the old command.
 Integration is semi-implicit Euler: ``dq += ddq dt; q += dq dt``.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pinocchio as pin
@@ -108,6 +110,8 @@ class ArmSim:
         posture = cfg.start_pose if cfg.posture is None else cfg.posture
         self.controller = IKController(robot, cfg.gains, robot.resolve_pose(posture))
         self.tick = 0
+        #: Sim time of tick 0, ns (0, or the UNIX epoch at start for a realtime arm).
+        self.time_origin_ns = 0
         self.counters: Counter[str] = Counter()
         self.clamp = ClampReport()
         self.braking = True
@@ -127,8 +131,14 @@ class ArmSim:
     # ------------------------------------------------------------------ state
     @property
     def time_ns(self) -> int:
-        """Sim time of the current tick, ns."""
-        return self.tick * self.config.dt_ns
+        """Sim time of the current tick, ns: ``time_origin_ns + tick * dt_ns``."""
+        return self.time_origin_ns + self.tick * self.config.dt_ns
+
+    def set_time_origin(self, origin_ns: int) -> None:
+        """Set the sim time of tick 0 (ns); the current snapshot is re-stamped."""
+        self.time_origin_ns = int(origin_ns)
+        if self._snapshot is not None:
+            self._snapshot = replace(self._snapshot, time_ns=self.time_ns)
 
     def snapshot(self) -> ArmSnapshot:
         """State at the current tick (cached; recomputed only after :meth:`step`)."""

@@ -534,6 +534,7 @@ class Service:
         self._stop_signal: int | None = None  # set by the SIGINT/SIGTERM handler
         self.state = ServiceStatus.STARTING
         self.last_error = ""
+        self._degraded: str | None = None
         self._error_log = _RateLimiter(1.0)
         self._reject_log = _RateLimiter(1.0)
         self._own_session = session is None
@@ -775,6 +776,11 @@ class Service:
         self._others.append(sub)
 
     # -- status ----------------------------------------------------------------------------------
+    def set_degraded(self, reason: str | None) -> None:
+        """While ``reason`` is set, :meth:`status_message` reports DEGRADED with ``reason`` as
+        ``last_error``; ``None`` clears it (thread-safe: one attribute assignment)."""
+        self._degraded = reason
+
     def status_message(self) -> ServiceStatus:
         """The current :class:`ServiceStatus` (not published)."""
         c = self.counters.snapshot(sum(sub.received for sub in self._subs))
@@ -783,6 +789,10 @@ class Service:
             c["errors"] > self._last_counts.get("errors", 0)
         ):
             state = ServiceStatus.DEGRADED
+        degraded = self._degraded
+        last_error = self.last_error
+        if state == ServiceStatus.RUNNING and degraded is not None:
+            state, last_error = ServiceStatus.DEGRADED, degraded
         self._status_seq += 1
         return ServiceStatus(
             stamp_ns=time.time_ns(),
@@ -790,7 +800,7 @@ class Service:
             service=self.name,
             state=state,
             uptime_s=time.monotonic() - self._t0,
-            last_error=self.last_error,
+            last_error=last_error,
             version=self.version,
             queued=sum(s.pending() for s in self._subs),
             **c,

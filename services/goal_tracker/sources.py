@@ -11,12 +11,14 @@ message; a dropped stream is reopened with exponential backoff, and only after
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from fractions import Fraction
 from typing import Any, Protocol
 
 import cv2
@@ -217,13 +219,19 @@ class VideoCaptureSource:
 
 
 class SyntheticSource:
-    """Frames of a :class:`SyntheticCamera` at ``fps``.
+    """Frames of a :class:`SyntheticCamera` at ``fps``, stamped with the time they show.
 
-    Frame ``k`` shows the scene at ``t_k = k / fps``. With ``sim_clock`` (a callable returning the
-    latest sim time in ns, or None before the first one — e.g. from the arm's state), frame ``k``
-    is produced once sim time reaches ``t_k`` and stamped exactly ``t_k``: every frame in order,
-    none skipped, so a lockstep run is reproducible. Without it, frames are paced by the wall
-    clock and stamped ``start + t_k`` (UNIX ns).
+    Frame times lie on the grid ``k / fps`` of the stack's clock. Without ``sim_clock`` that
+    clock is the wall clock: frame ``k`` is due at ``start + k / fps`` (paced by the monotonic
+    clock) and stamped ``start_unix_ns + k / fps``. With ``sim_clock`` (a callable returning
+    the latest sim time in ns, or None before the first one — e.g. the arm's state) the grid is
+    on the sim time itself: frame ``k`` is produced once sim time reaches ``k / fps`` and is
+    stamped exactly that. The scene shown is the one at ``stamp − origin`` (origin: the start,
+    or the grid time at or before the first sim time seen: 0 for a lockstep arm).
+
+    A camera that cannot keep its rate (slow rendering, a descheduled process, a sim clock
+    running faster than real time) drops frames instead of lagging: ``read`` returns the
+    latest due frame and counts the ones skipped in :attr:`dropped`.
     """
 
     def __init__(
@@ -239,10 +247,14 @@ class SyntheticSource:
             raise ValueError(f"fps must be > 0, got {fps}")
         self.camera = camera
         self.fps = float(fps)
+        self._period = Fraction(10**9) / Fraction(self.fps).limit_denominator(10**6)
         self.sim_clock = sim_clock
         self.max_frames = max_frames
         self.stop = stop or threading.Event()
         self.seq = 0
+        self.dropped = 0
+        self._next_k = 0
+        self._origin_ns: int | None = None if sim_clock is not None else 0
         self._t0_wall_ns = time.time_ns()
         self._t0_mono = time.monotonic()
         self.description = (
@@ -251,37 +263,52 @@ class SyntheticSource:
         )
 
     def frame_time_ns(self, k: int) -> int:
-        """Scene time of frame ``k``, ns."""
-        return round(k * 1e9 / self.fps)
+        """Time of grid frame ``k`` on the source's clock, ns (from the start for the wall
+        clock, absolute sim time for a sim clock)."""
+        return round(k * self._period)
+
+    def _due_index(self, now_ns: int) -> int:
+        """The latest grid frame whose time is at or before ``now_ns``."""
+        return math.floor(now_ns / self._period)
 
     def read(self, timeout_s: float = 1.0) -> Frame | None:
-        """The next frame, or None if it is not due within ``timeout_s``."""
+        """The latest due frame, or None if none is due within ``timeout_s``."""
         if self.max_frames and self.seq >= self.max_frames:
             raise SourceEndedError(f"{self.max_frames} synthetic frames done")
-        k = self.seq
-        t_ns = self.frame_time_ns(k)
         deadline = time.monotonic() + timeout_s
         if self.sim_clock is not None:
             while True:
                 now = self.sim_clock()
-                if now is not None and now >= t_ns:
-                    break
+                if now is not None:
+                    k = self._due_index(now)
+                    if self._origin_ns is None:
+                        self._origin_ns = self.frame_time_ns(k)
+                        self._next_k = k
+                    if k >= self._next_k:
+                        break
                 if time.monotonic() >= deadline or self.stop.is_set():
                     return None
                 self.stop.wait(0.001)
-            stamp = t_ns
+            stamp = self.frame_time_ns(k)
         else:
-            due = self._t0_mono + t_ns * 1e-9
+            due = self._t0_mono + self.frame_time_ns(self._next_k) * 1e-9
             wait = due - time.monotonic()
             if wait > timeout_s:
                 self.stop.wait(timeout_s)
                 return None
             if wait > 0 and self.stop.wait(wait):
                 return None
-            stamp = self._t0_wall_ns + t_ns
-        image = self.camera.render(t_ns * 1e-9)
+            elapsed_ns = round((time.monotonic() - self._t0_mono) * 1e9)
+            k = max(self._next_k, self._due_index(elapsed_ns))
+            stamp = self._t0_wall_ns + self.frame_time_ns(k)
+        self.dropped += k - self._next_k
+        self._next_k = k + 1
+        assert self._origin_ns is not None
+        scene_ns = self.frame_time_ns(k) - self._origin_ns
+        image = self.camera.render(scene_ns * 1e-9)
+        seq = self.seq
         self.seq += 1
-        return Frame(image, stamp, k)
+        return Frame(image, stamp, seq)
 
     def close(self) -> None:
         """Nothing to release."""

@@ -138,6 +138,7 @@ class SyntheticCamera:
         self.noise_sigma = float(noise_sigma)
         self.seed = int(seed)
         self.background = make_background(self.intrinsics.width, self.intrinsics.height, seed)
+        self._noise_pool: tuple[Image, Image] | None = None
 
     def truth(self, t: float) -> list[FaceTruth]:
         """Ground truth of every face at time ``t`` (seconds)."""
@@ -149,8 +150,12 @@ class SyntheticCamera:
         return out
 
     def render(self, t: float) -> Image:
-        """The H×W×3 BGR uint8 frame at time ``t`` (seconds)."""
-        frame = self.background.astype(np.float32)
+        """The H×W×3 BGR uint8 frame at time ``t`` (seconds).
+
+        The background is copied, each visible face blended into its own rectangle only, and
+        the noise added with saturation from a precomputed pool at a seeded per-frame offset
+        (see :meth:`_noise`), so a frame costs a few full-frame uint8 passes."""
+        frame = self.background.copy()
         truths = self.truth(t)
         order = sorted(range(len(truths)), key=lambda i: -truths[i].position_cam[2])
         for i in order:
@@ -158,9 +163,35 @@ class SyntheticCamera:
             if tr.visible:
                 _paste_face(frame, tr.box)
         if self.noise_sigma > 0:
-            rng = np.random.default_rng([self.seed, round(t * 1e6)])
-            frame += rng.standard_normal(frame.shape, dtype=np.float32) * self.noise_sigma
-        return np.clip(frame, 0, 255).astype(np.uint8)
+            up, down = self._noise(t)
+            cv2.add(frame, up, dst=frame)
+            cv2.subtract(frame, down, dst=frame)
+        return frame
+
+    def _noise(self, t: float) -> tuple[Image, Image]:
+        """Sensor noise of the frame at ``t``: ``(up, down)`` uint8 images, the positive and
+        negative parts of rounded N(0, noise_sigma²) grey levels (never both non-zero at a
+        pixel, so ``frame + up − down`` with saturation is ``clip(frame + noise)``).
+
+        Drawn from a pool of ``H·W·3 + _NOISE_SLACK`` values made once from the seed; frame
+        ``t`` starts at an offset seeded by ``(seed, round(t·1e6))``."""
+        h, w = self.intrinsics.height, self.intrinsics.width
+        n = h * w * 3
+        if self._noise_pool is None:
+            rng = np.random.default_rng([self.seed, 0x5EED])
+            vals = np.rint(rng.standard_normal(n + _NOISE_SLACK) * self.noise_sigma)
+            vals = np.clip(vals, -255, 255)
+            self._noise_pool = (
+                np.maximum(vals, 0).astype(np.uint8),
+                np.maximum(-vals, 0).astype(np.uint8),
+            )
+        off = int(np.random.default_rng([self.seed, round(t * 1e6)]).integers(0, _NOISE_SLACK))
+        up, down = self._noise_pool
+        return up[off : off + n].reshape(h, w, 3), down[off : off + n].reshape(h, w, 3)
+
+
+#: Extra noise values beyond one frame: the range of the per-frame offsets.
+_NOISE_SLACK = 1 << 16
 
 
 def make_background(width: int, height: int, seed: int = 0) -> Image:
@@ -178,8 +209,9 @@ def make_background(width: int, height: int, seed: int = 0) -> Image:
     return np.clip(img, 0, 255).astype(np.uint8)
 
 
-def _paste_face(frame: NDArray[np.float32], box: ArrayLike) -> None:
-    """Alpha-blend the sprite into ``frame`` (float32, in place); its face box lands on ``box``."""
+def _paste_face(frame: Image, box: ArrayLike) -> None:
+    """Alpha-blend the sprite into ``frame`` (uint8, in place, only the sprite's rectangle); its
+    face box lands on ``box``."""
     bx, by, bw, bh = (float(v) for v in np.asarray(box).reshape(4))
     fx0, fy0, fw, fh = SPRITE_FACE_BOX
     sx, sy = bw / fw, bh / fh
@@ -204,6 +236,4 @@ def _paste_face(frame: NDArray[np.float32], box: ArrayLike) -> None:
     patch = cv2.warpAffine(img, m, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     alpha = cv2.warpAffine(mask, m, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     region = frame[y0:y1, x0:x1]
-    a = alpha[..., None]
-    region *= 1.0 - a
-    region += a * patch.astype(np.float32)
+    region[...] = cv2.blendLinear(patch, region, alpha, 1.0 - alpha)

@@ -135,12 +135,49 @@ def test_synthetic_sim_clock_is_deterministic() -> None:
     now = {"t": None}
     src = SyntheticSource(cam, 30.0, sim_clock=lambda: now["t"], max_frames=3)
     assert src.read(0.01) is None  # no sim time yet
-    now["t"] = 70_000_000  # 70 ms of sim time: frames 0, 1, 2 (0, 33.3, 66.7 ms) are due
-    got = [src.read(0.01) for _ in range(3)]
+    now["t"] = 0
+    got = [src.read(0.01)]
+    for t in (40_000_000, 70_000_000):  # frames 1 (33.3 ms) and 2 (66.7 ms) fall due
+        now["t"] = t
+        got.append(src.read(0.01))
     assert [f.stamp_ns for f in got] == [0, 33_333_333, 66_666_667]
     np.testing.assert_array_equal(got[1].image, cam.render(1 / 30))
+    assert src.dropped == 0
     with pytest.raises(SourceEndedError):
         src.read(0.01)
+
+
+def test_synthetic_sim_clock_drops_frames_instead_of_lagging() -> None:
+    """Sim time ran past several frame times before the camera got to them: the camera shows the
+    latest due frame, stamped with its time on the arm's clock, and counts the skipped ones."""
+    cam = SyntheticCamera(noise_sigma=0)
+    epoch = 1_700_000_000_000_000_000  # a realtime arm's sim time is UNIX time
+    now = {"t": epoch}
+    src = SyntheticSource(cam, 30.0, sim_clock=lambda: now["t"])
+    first = src.read(0.01)
+    assert first is not None and first.stamp_ns <= epoch < first.stamp_ns + 33_333_334
+    assert src.read(0.01) is None  # the next frame is not due yet
+    now["t"] = epoch + 200_000_000  # 200 ms later: 6 frame times passed
+    late = src.read(0.01)
+    assert late is not None and epoch + 166_666_666 < late.stamp_ns <= epoch + 200_000_000
+    assert src.dropped == 5
+    # The scene is the one at the frame's time since the first frame.
+    scene_s = (late.stamp_ns - first.stamp_ns) * 1e-9
+    np.testing.assert_array_equal(late.image, cam.render(scene_s))
+
+
+def test_synthetic_wall_clock_drops_frames_when_late() -> None:
+    src = SyntheticSource(SyntheticCamera(noise_sigma=0), 50.0)
+    t0 = time.time_ns()
+    a = src.read(1.0)
+    time.sleep(0.13)  # the consumer stalls for 6.5 frame periods
+    b = src.read(1.0)
+    assert a is not None and b is not None
+    assert (b.stamp_ns - a.stamp_ns) % 20_000_000 == 0 and b.stamp_ns - a.stamp_ns >= 120_000_000
+    assert src.dropped >= 5
+    # Stamped with the time it shows on the wall clock: not behind the wall clock by a period.
+    assert abs(b.stamp_ns - time.time_ns()) < 40_000_000
+    assert abs(a.stamp_ns - t0) < 40_000_000
 
 
 def test_synthetic_wall_clock_paces_frames() -> None:

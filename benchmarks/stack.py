@@ -1,0 +1,311 @@
+"""Stack benchmark: CPU cost of the services on loopback and the arm's realtime ticks.
+
+Run ``python -m benchmarks.stack`` (``--seconds 20`` per scenario, ``--quick`` for 8 s). Writes
+``benchmarks/results/stack.md`` and ``benchmarks/results/stack.json``.
+
+Scenarios (every service a Zenoh client of one router on 127.0.0.1, multicast off):
+
+a. **arm**: router, ``psm arm`` (realtime, 500 Hz) and the trivial controller
+   ``services.arm.probe`` answering every state;
+b. **stack**: router, arm, probe, ``psm camera synth`` (30 fps, wall clock), ``psm track
+   --source topic`` and ``psm record``.
+
+CPU is read per process from ``/proc/<pid>/stat`` (utime + stime) over a measurement window
+after a warm-up, as % of one core: robust against the other jobs sharing the machine, unlike
+wall-clock rates. In each scenario a **bare timer loop** (its own process, doing nothing but
+waiting for 2 ms deadlines on the same kind of timed queue wait as the arm, see
+:func:`benchmarks.arm.bench_timer`) runs for the same time as the arm's loop: its CPU and its
+deadlines missed by more than 2 ms are the platform reference for the arm's missed ticks (ticks
+not published within one dt of their schedule).
+
+Targets: (1) arm + probe: the arm ≤ 15 % of one core; (2) the whole stack ≤ 70 % of one core in
+total; (3) with the stack running, the arm's missed ticks ≤ 2× the bare timer loop's misses.
+All processes are started by :func:`start_stack`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import platform
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from benchmarks.arm import _free_port, _load, bench_timer
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+#: Target (1): the arm at 500 Hz answered by the probe, % of one core.
+ARM_TARGET_PCT = 15.0
+#: Target (2): the whole stack, % of one core.
+STACK_TARGET_PCT = 70.0
+#: Target (3): arm missed ticks / bare timer misses.
+MISS_RATIO_TARGET = 2.0
+
+SCENARIOS: dict[str, tuple[str, ...]] = {
+    "arm": ("router", "arm", "probe"),
+    "stack": ("router", "arm", "probe", "camera", "tracker", "recorder"),
+}
+
+
+@dataclass
+class Stack:
+    """The processes of one scenario (name → process) and where their files go."""
+
+    procs: dict[str, subprocess.Popen[bytes]] = field(default_factory=dict)
+    workdir: Path = Path(".")
+    arm_stats: Path = Path("arm.json")
+
+    def stop(self) -> None:
+        """SIGTERM every process (the router last), then SIGKILL what has not exited in 15 s."""
+        order = [n for n in self.procs if n != "router"] + (["router"] if "router" in self.procs else [])
+        for name in order:
+            p = self.procs[name]
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(15)
+            if p.poll() is None:
+                p.kill()
+                p.wait(5)
+
+
+def start_stack(services: tuple[str, ...], workdir: Path, *, fps: float = 30.0) -> Stack:
+    """Start ``services`` (subset of router, arm, probe, camera, tracker, recorder) on a fresh
+    loopback port, the router first. The only place processes of the stack are launched."""
+    port = _free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    client = ["--mode", "client", "--connect", endpoint, "--no-multicast", "--log-level", "WARNING"]
+    stack = Stack(workdir=workdir, arm_stats=workdir / "arm-stats.json")
+    py = [sys.executable, "-m"]
+    commands = {
+        "router": [*py, "services.cli", "serve", "router", "--listen", endpoint, "--no-multicast",
+                   "--log-level", "WARNING"],
+        "probe": [*py, "services.arm.probe", "--pattern", "hold", *client],
+        "arm": [*py, "services.arm", "arm", "--clock", "realtime", "--dt", "0.002",
+                "--stats-file", str(stack.arm_stats), *client],
+        "camera": [*py, "services.cli", "camera", "synth", "--clock", "wall",
+                   "--set", f"goal_tracker.synthetic.fps={fps}", *client],
+        "tracker": [*py, "services.cli", "track", "--source", "topic", *client],
+        "recorder": [*py, "services.cli", "record", "-o", str(workdir / "stack.mcap"), *client],
+    }
+    for name in ("router", "probe", "camera", "tracker", "recorder", "arm"):
+        if name not in services:
+            continue
+        log = open(workdir / f"{name}.log", "wb")  # noqa: SIM115 (closed with the process)
+        stack.procs[name] = subprocess.Popen(commands[name], cwd=ROOT, env=env, stdout=log, stderr=log)
+        log.close()
+        if name == "router":
+            time.sleep(1.0)  # clients connect at once
+    return stack
+
+
+def _cpu_ticks(pid: int) -> int:
+    """utime + stime of a process, clock ticks (0 if it is gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0
+    return int(fields[11]) + int(fields[12])
+
+
+def run_scenario(name: str, seconds: float, warmup_s: float, fps: float) -> dict[str, Any]:
+    """Run one scenario: start it, warm up, measure CPU over ``seconds``, stop; returns the
+    per-process CPU, the arm's loop statistics and the bare timer reference."""
+    with tempfile.TemporaryDirectory(prefix=f"stack-{name}-") as tmp:
+        workdir = Path(tmp)
+        timer_out = workdir / "timer.json"
+        stack = start_stack(SCENARIOS[name], workdir, fps=fps)
+        t_arm = time.monotonic()
+        loop_s = warmup_s + seconds + 2.0  # the arm loads its model for ~1-2 s first
+        timer = subprocess.Popen(
+            [sys.executable, "-m", "benchmarks.stack", "--timer", str(loop_s), "--timer-out",
+             str(timer_out)],
+            cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+        )
+        try:
+            time.sleep(warmup_s + 2.0)
+            pids = {n: p.pid for n, p in stack.procs.items()}
+            pids["bare timer"] = timer.pid
+            before = {n: _cpu_ticks(pid) for n, pid in pids.items()}
+            load_before = _load()
+            t0 = time.monotonic()
+            time.sleep(seconds)
+            window = time.monotonic() - t0
+            after = {n: _cpu_ticks(pid) for n, pid in pids.items()}
+            load_after = _load()
+            alive = {n: p.poll() is None for n, p in stack.procs.items()}
+            remaining = loop_s - (time.monotonic() - t_arm)
+            if remaining > 0:
+                time.sleep(remaining)  # the arm runs as long as the timer loop
+        finally:
+            stack.stop()
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                timer.wait(30)
+            if timer.poll() is None:
+                timer.kill()
+        cpu = {n: round(100.0 * (after[n] - before[n]) / CLK_TCK / window, 1) for n in pids}
+        arm = json.loads(stack.arm_stats.read_text()) if stack.arm_stats.exists() else {}
+        ref = json.loads(timer_out.read_text()) if timer_out.exists() else {}
+        logs = {n: (workdir / f"{n}.log").read_text(errors="replace")[-2000:] for n in stack.procs}
+    services_cpu = sum(v for n, v in cpu.items() if n != "bare timer")
+    return {
+        "services": list(SCENARIOS[name]),
+        "window_s": round(window, 2),
+        "cpu_pct": cpu,
+        "services_cpu_pct": round(services_cpu, 1),
+        "alive_during_window": alive,
+        "loadavg": [load_before, load_after],
+        "arm": {k: arm.get(k) for k in ("ticks", "published_ticks", "published_per_s", "wall_s",
+                                        "missed_ticks", "skipped_ticks", "reanchors",
+                                        "late_commands", "answered_ticks", "jitter")},
+        "timer": ref,
+        "logs_tail": {n: t for n, t in logs.items() if "Traceback" in t or "error" in t.lower()},
+    }
+
+
+def _timer_main(seconds: float, out: Path) -> int:
+    """The bare timer reference: 2 ms deadlines for ``seconds``, plus its own CPU time."""
+    c0 = time.process_time()
+    res = bench_timer(seconds, period_s=0.002)
+    res["cpu_pct"] = round(100.0 * (time.process_time() - c0) / seconds, 1)
+    res["deadlines"] = int(seconds / 0.002)
+    out.write_text(json.dumps(res))
+    return 0
+
+
+def verdicts(res: dict[str, Any]) -> dict[str, Any]:
+    """The three targets, each with the figures it is judged on."""
+    a, s = res["scenarios"]["arm"], res["scenarios"]["stack"]
+    arm_pct = a["cpu_pct"].get("arm", float("nan"))
+    stack_pct = s["services_cpu_pct"]
+    missed = s["arm"].get("missed_ticks") or 0
+    ticks = (s["arm"].get("published_ticks") or 0) + (s["arm"].get("skipped_ticks") or 0)
+    ref_missed = s["timer"].get("over_2ms", 0)
+    ref_n = s["timer"].get("deadlines", 0) or 1
+    # Compare rates (the arm's loop and the timer cover about the same time).
+    arm_rate = missed / ticks if ticks else float("nan")
+    ref_rate = ref_missed / ref_n
+    ratio = arm_rate / ref_rate if ref_rate > 0 else (0.0 if missed == 0 else float("inf"))
+    return {
+        "arm_cpu": {"value_pct": arm_pct, "target_pct": ARM_TARGET_PCT,
+                    "bare_timer_pct": a["cpu_pct"].get("bare timer"),
+                    "ok": arm_pct <= ARM_TARGET_PCT},
+        "stack_cpu": {"value_pct": stack_pct, "target_pct": STACK_TARGET_PCT,
+                      "ok": stack_pct <= STACK_TARGET_PCT},
+        "missed_ticks": {"arm_missed": missed, "arm_ticks": ticks, "timer_missed": ref_missed,
+                         "timer_deadlines": ref_n, "ratio": ratio, "target_ratio": MISS_RATIO_TARGET,
+                         "ok": ratio <= MISS_RATIO_TARGET},
+    }
+
+
+def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
+    """Write ``stack.json`` and ``stack.md`` into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "stack.json").write_text(json.dumps(res, indent=2, default=str))
+    v = res["verdicts"]
+    sc = res["scenarios"]
+    names = ["router", "arm", "probe", "camera", "tracker", "recorder"]
+    lines = [
+        "# Stack benchmark: CPU per process and the arm's realtime ticks",
+        "",
+        f"{res['date']} · {res['machine']} · {res['cpus']} CPUs · {res['seconds']} s windows "
+        f"after {res['warmup_s']} s warm-up · `python -m benchmarks.stack` (method: module "
+        "docstring). CPU = utime + stime from `/proc/<pid>/stat` over the window, % of one core.",
+        "",
+        "| process | (a) arm + probe | (b) whole stack |",
+        "|---|---:|---:|",
+    ]
+    for n in [*names, "bare timer"]:
+        cells = [f"{sc[k]['cpu_pct'][n]:.1f}" if n in sc[k]["cpu_pct"] else "–" for k in ("arm", "stack")]
+        lines.append(f"| {n} | {cells[0]} | {cells[1]} |")
+    lines.append(f"| **services total** | {sc['arm']['services_cpu_pct']:.1f} | "
+                 f"{sc['stack']['services_cpu_pct']:.1f} |")
+    lines += ["", "| arm loop | (a) | (b) |", "|---|---:|---:|"]
+    for key in ("published_per_s", "missed_ticks", "skipped_ticks", "reanchors", "late_commands"):
+        cells = []
+        for k in ("arm", "stack"):
+            val = sc[k]["arm"].get(key)
+            cells.append("–" if val is None else (f"{val:.1f}" if isinstance(val, float) else str(val)))
+        lines.append(f"| {key} | {cells[0]} | {cells[1]} |")
+    for k in ("arm", "stack"):
+        t = sc[k]["timer"]
+        sc[k]["_timer_txt"] = (f"{t.get('over_2ms', '–')} of {t.get('deadlines', '–')} "
+                               f"(p50 {t.get('p50_us', float('nan')):.0f} µs, max "
+                               f"{t.get('max_us', float('nan')) / 1e3:.1f} ms)")
+    lines.append(f"| bare timer: deadlines missed by > 2 ms | {sc['arm']['_timer_txt']} | "
+                 f"{sc['stack']['_timer_txt']} |")
+    m = v["missed_ticks"]
+
+    def ok(b: bool) -> str:
+        return "**met**" if b else "**not met**"
+
+    lines += [
+        "",
+        "| target | measured | verdict |",
+        "|---|---|---|",
+        f"| arm (500 Hz, answered by the probe) ≤ {ARM_TARGET_PCT:.0f} % of one core | "
+        f"{v['arm_cpu']['value_pct']:.1f} % (bare 2 ms timer loop in the same run: "
+        f"{v['arm_cpu']['bare_timer_pct']} %) | {ok(v['arm_cpu']['ok'])} |",
+        f"| whole stack ≤ {STACK_TARGET_PCT:.0f} % of one core | "
+        f"{v['stack_cpu']['value_pct']:.1f} % | {ok(v['stack_cpu']['ok'])} |",
+        f"| arm missed ticks ≤ {MISS_RATIO_TARGET:.0f}× bare timer misses (stack running) | "
+        f"arm {m['arm_missed']} of {m['arm_ticks']} ticks, timer {m['timer_missed']} of "
+        f"{m['timer_deadlines']} deadlines: ratio of rates {m['ratio']:.2f} | {ok(m['ok'])} |",
+        "",
+        f"Load average (1 min) before/after the windows: arm {sc['arm']['loadavg']}, "
+        f"stack {sc['stack']['loadavg']}.",
+    ]
+    for k in ("arm", "stack"):
+        sc[k].pop("_timer_txt", None)
+    (out / "stack.md").write_text("\n".join(lines) + "\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run both scenarios and write the report (or, with ``--timer``, be the timer loop)."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0, help="measurement window per scenario")
+    ap.add_argument("--warmup", type=float, default=4.0, help="warm-up before each window, s")
+    ap.add_argument("--fps", type=float, default=30.0, help="synthetic camera rate")
+    ap.add_argument("--quick", action="store_true", help="8 s windows")
+    ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--timer", type=float, default=0.0, help=argparse.SUPPRESS)
+    ap.add_argument("--timer-out", type=Path, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.timer > 0:
+        return _timer_main(args.timer, args.timer_out)
+    seconds = 8.0 if args.quick else args.seconds
+    res: dict[str, Any] = {
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "seconds": seconds,
+        "warmup_s": args.warmup,
+        "fps": args.fps,
+        "scenarios": {},
+    }
+    for name in SCENARIOS:
+        print(f"scenario {name} ...", flush=True)
+        res["scenarios"][name] = run_scenario(name, seconds, args.warmup, args.fps)
+        print(json.dumps(res["scenarios"][name]["cpu_pct"]), flush=True)
+    res["verdicts"] = verdicts(res)
+    write_report(res, args.out)
+    print((args.out / "stack.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,60 @@
+"""Worker-thread limits for the native libraries a service loads (OpenBLAS, OpenCV).
+
+OpenBLAS (bundled with numpy and, separately, with scipy) and OpenCV start a pool of worker
+threads per process and hand even tiny operations to it: scipy's LAPACK ``potri`` on the arm's
+6×6 matrix runs ``dlauum`` in parallel. After each call the pool's threads busy-wait for the
+next piece of work; a loop that calls the library every 2 ms therefore keeps a worker on the
+CPU all the time (measured: the idle arm at ~100 % of a core, ~7 % with one thread). The
+services do small operations at a high rate, so they run these libraries single-threaded.
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+#: Setter symbols of the OpenBLAS builds in use (plain, numpy's ILP64 and scipy's prefixed ones).
+_OPENBLAS_SETTERS = (
+    "openblas_set_num_threads",
+    "openblas_set_num_threads64_",
+    "scipy_openblas_set_num_threads",
+    "scipy_openblas_set_num_threads64_",
+)
+
+
+def _loaded_libraries(fragment: str) -> list[str]:
+    """Paths of the shared objects mapped into this process whose name contains ``fragment``."""
+    try:
+        with open("/proc/self/maps") as fh:
+            paths = {line.split()[-1] for line in fh if ".so" in line}
+    except OSError:
+        return []
+    return sorted(p for p in paths if fragment in p.rsplit("/", 1)[-1].lower())
+
+
+def limit_blas_threads(n: int = 1) -> list[str]:
+    """Set every OpenBLAS loaded so far to ``n`` threads; returns the libraries changed.
+
+    Call it after numpy/scipy's linear algebra is imported (a library loaded later keeps its
+    default). Linux only (reads ``/proc/self/maps``); elsewhere it does nothing."""
+    changed = []
+    for path in _loaded_libraries("openblas"):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for name in _OPENBLAS_SETTERS:
+            setter = getattr(lib, name, None)
+            if setter is not None:
+                setter.argtypes = [ctypes.c_int]
+                setter.restype = None
+                setter(int(n))
+                changed.append(path)
+                break
+    return changed
+
+
+def limit_opencv_threads(n: int = 1) -> None:
+    """Run OpenCV's parallel loops on ``n`` threads (1: on the calling thread, no pool)."""
+    import cv2
+
+    cv2.setNumThreads(int(n))

@@ -1,0 +1,156 @@
+"""The realtime arm's clock: sim time locked to the wall clock (UNIX epoch), missed ticks
+stepped through and published current, DEGRADED while it happens; lockstep starts at 0.
+
+In process (no router: a peer session with multicast off and no endpoints), so the arm's own
+loop is observed directly; its step is slowed artificially to make ticks miss."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from typing import Any
+
+import pytest
+
+from services.arm.config import ArmConfig, ArmSection
+from services.arm.service import ArmService
+from services.bus.config import ZenohConfig
+from services.bus.messages import ServiceStatus
+
+
+def _arm(**arm: Any) -> ArmService:
+    cfg = ArmConfig(
+        zenoh=ZenohConfig(mode="peer", multicast=False, gossip=False),
+        log_level="ERROR",
+        arm=ArmSection(**arm),
+    )
+    return ArmService(cfg)
+
+
+def _run_in_thread(svc: ArmService) -> threading.Thread:
+    th = threading.Thread(target=svc.run, daemon=True)
+    th.start()
+    return th
+
+
+def test_realtime_stamps_are_epoch_and_a_stall_is_caught_up() -> None:
+    svc = _arm(dt_s=0.002, max_ticks=600, transforms_rate_hz=30.0)
+    sim = svc.sim
+    stamps: list[tuple[int, int]] = []
+    transforms: list[int] = []
+    put_state = svc._state_pub.put_bytes
+
+    def spy_state(payload: bytes) -> None:
+        from services.bus.messages import ArmState
+
+        msg = ArmState.FromString(payload)
+        stamps.append((msg.tick, msg.stamp_ns))
+        put_state(payload)
+
+    assert svc._tf_pub is not None
+    put_tf = svc._tf_pub.put
+
+    def spy_tf(msg: Any) -> None:
+        ts = msg.transforms[0].timestamp
+        transforms.append(ts.seconds * 1_000_000_000 + ts.nanos)
+        put_tf(msg)
+
+    svc._state_pub.put_bytes = spy_state  # type: ignore[method-assign]
+    svc._tf_pub.put = spy_tf  # type: ignore[method-assign]
+    step = sim.step
+    stalled = {"done": False}
+
+    def slow_step() -> Any:
+        # At tick 200 the process "stops" for 200 ms (a step that cannot be computed in time).
+        if sim.tick == 200 and not stalled["done"]:
+            stalled["done"] = True
+            time.sleep(0.2)
+        return step()
+
+    sim.step = slow_step  # type: ignore[method-assign]
+    wall0 = time.time_ns()
+    th = _run_in_thread(svc)
+    th.join(30)
+    assert not th.is_alive()
+    wall1 = time.time_ns()
+    st = svc.stats
+    dt_ns = 2_000_000
+    origin = sim.time_origin_ns
+    # Realtime sim time is UNIX time: tick k is stamped origin + k·dt, origin = start time.
+    assert wall0 - 1e9 < origin < wall1
+    assert all(stamp == origin + tick * dt_ns for tick, stamp in stamps)
+    # The stall was stepped through (not published one by one) and the arm re-locked: the last
+    # state's sim time is within a few ticks of the wall clock when it was published.
+    assert st.skipped_ticks >= 90, st.summary()
+    assert st.missed_ticks >= st.skipped_ticks
+    assert st.reanchors == 0
+    ticks = [t for t, _ in stamps]
+    assert ticks == sorted(ticks) and max(b - a for a, b in itertools.pairwise(ticks)) >= 90
+    assert sim.tick == 600
+    elapsed = (wall1 - origin) * 1e-9
+    assert elapsed == pytest.approx(600 * 0.002, abs=0.25)
+    # Transforms carry the sim time of the state they show (a tick on the 2 ms grid).
+    assert transforms and all((t - origin) % dt_ns == 0 for t in transforms)
+
+
+def test_degraded_status_is_set_and_cleared() -> None:
+    svc = _arm(dt_s=0.002, max_ticks=1)
+    try:
+        assert svc.svc.status_message().state != ServiceStatus.DEGRADED
+        svc.svc.state = ServiceStatus.RUNNING
+        svc.svc.set_degraded("realtime: 5 ticks missed")
+        msg = svc.svc.status_message()
+        assert msg.state == ServiceStatus.DEGRADED
+        assert msg.last_error == "realtime: 5 ticks missed"
+        svc.svc.set_degraded(None)
+        assert svc.svc.status_message().state == ServiceStatus.RUNNING
+    finally:
+        svc.svc.close()
+
+
+def test_missed_ticks_make_the_arm_degraded_then_it_recovers(monkeypatch: pytest.MonkeyPatch) -> None:
+    import services.arm.service as mod
+
+    monkeypatch.setattr(mod, "DEGRADED_HOLD_NS", 300_000_000)
+    svc = _arm(dt_s=0.002, max_ticks=700)
+    sim = svc.sim
+    step = sim.step
+    seen: list[tuple[int, int]] = []
+
+    def slow_step() -> Any:
+        if sim.tick == 100:
+            time.sleep(0.05)
+        if sim.tick in (150, 690):
+            seen.append((sim.tick, svc.svc.status_message().state))
+        return step()
+
+    sim.step = slow_step  # type: ignore[method-assign]
+    th = _run_in_thread(svc)
+    th.join(30)
+    assert not th.is_alive()
+    states = dict(seen)
+    assert states[150] == ServiceStatus.DEGRADED  # 100 ms after the miss
+    assert states[690] == ServiceStatus.RUNNING  # > 0.3 s without a miss
+    assert svc.stats.skipped_ticks >= 20
+
+
+def test_lockstep_sim_time_starts_at_zero() -> None:
+    svc = _arm(clock="lockstep", dt_s=0.002, lockstep_timeout_s=0.05)
+    stamps: list[int] = []
+    put_state = svc._state_pub.put_bytes
+
+    def spy_state(payload: bytes) -> None:
+        from services.bus.messages import ArmState
+
+        stamps.append(ArmState.FromString(payload).stamp_ns)
+        put_state(payload)
+
+    svc._state_pub.put_bytes = spy_state  # type: ignore[method-assign]
+    th = _run_in_thread(svc)
+    time.sleep(1.0)  # no planner: state 0 is re-offered, sim time does not run
+    svc.svc.stop()
+    th.join(30)
+    assert not th.is_alive()
+    assert svc.sim.time_origin_ns == 0
+    assert stamps and set(stamps) == {0}
