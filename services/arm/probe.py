@@ -27,7 +27,7 @@ import numpy as np
 from services.arm.cli import PROBE_PATTERNS
 from services.bus.config import ServiceConfig, config_from_args
 from services.bus.messages import ArmCommand, ArmState, decode
-from services.bus.runtime import Service
+from services.bus.runtime import Service, ServiceApp, run_service
 from services.robot.protocol import cartesian_command, joint_command
 
 #: The pattern names (described in :data:`services.arm.cli.PROBE_PATTERNS`).
@@ -134,42 +134,56 @@ def run(args: argparse.Namespace) -> int:
         frequency=args.frequency,
         source=args.name,
     )
-    from services.arm.service import set_realtime_priority
+    return run_service(_ProbeService(cfg, probe, args))
 
-    problem = set_realtime_priority(args.rt_priority)
-    svc = Service(args.name, cfg)
-    if problem:
-        svc.log.warning(problem)
-    keys = svc.keys
-    pub = svc.publisher(keys.arm_command)
-    lock = threading.Lock()
-    stop_tick = args.stop_after_tick
 
-    def on_state(sample: Any) -> None:
-        try:
-            state = decode(sample.payload.to_bytes(), str(sample.encoding), ArmState)
-        except ValueError as exc:
-            svc.record_rejection(keys.arm_state.key, str(exc))
-            return
-        assert isinstance(state, ArmState)
-        if 0 <= stop_tick <= state.tick:
-            return
-        with lock:
-            reply = probe.reply(state)
-        if isinstance(reply, bytes):
-            pub.put_bytes(reply)
-        else:
-            pub.put(reply)
+class _ProbeService(ServiceApp):
+    """Answers every arm state with the probe's command, on Zenoh's receive thread."""
 
-    import zenoh
+    def __init__(self, cfg: ServiceConfig, probe: Probe, args: argparse.Namespace) -> None:
+        super().__init__(cfg)
+        self.name = args.name
+        self.probe = probe
+        self.args = args
 
-    sub = svc.session.declare_subscriber(
-        keys.arm_state.key, zenoh.handlers.Callback(on_state, indirect=False)
-    )
-    svc.on_close(sub.undeclare)
-    svc.log.info("probe running", extra={"pattern": args.pattern})
-    svc.run(timeout_s=args.max_runtime or None)
-    return 0
+    def setup(self, svc: Service) -> None:
+        import zenoh
+
+        from services.arm.service import set_realtime_priority
+
+        args, probe = self.args, self.probe
+        problem = set_realtime_priority(args.rt_priority)
+        if problem:
+            svc.log.warning(problem)
+        keys = svc.keys
+        pub = svc.publisher(keys.arm_command)
+        lock = threading.Lock()
+        stop_tick = args.stop_after_tick
+
+        def on_state(sample: Any) -> None:
+            try:
+                state = decode(sample.payload.to_bytes(), str(sample.encoding), ArmState)
+            except ValueError as exc:
+                svc.record_rejection(keys.arm_state.key, str(exc))
+                return
+            assert isinstance(state, ArmState)
+            if 0 <= stop_tick <= state.tick:
+                return
+            with lock:
+                reply = probe.reply(state)
+            if isinstance(reply, bytes):
+                pub.put_bytes(reply)
+            else:
+                pub.put(reply)
+
+        sub = svc.session.declare_subscriber(
+            keys.arm_state.key, zenoh.handlers.Callback(on_state, indirect=False)
+        )
+        svc.on_close(sub.undeclare)
+        svc.log.info("probe running", extra={"pattern": args.pattern})
+
+    def loop(self, svc: Service) -> None:
+        svc.wait(self.args.max_runtime or None)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -30,7 +30,6 @@ import gc
 import json
 import os
 import queue
-import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -42,7 +41,7 @@ import numpy as np
 from services.arm.config import ArmConfig
 from services.arm.sim import ArmSim
 from services.bus.messages import ArmCommand, MessageDecodeError, decode
-from services.bus.runtime import Service
+from services.bus.runtime import Service, ServiceApp, run_service
 from services.robot.protocol import (
     CommandRejectedError,
     command_from_message,
@@ -139,18 +138,24 @@ class LoopStats:
         }
 
 
-class ArmService:
-    """The arm process: an :class:`ArmSim` driven by the bus (see module docstring)."""
+class ArmService(ServiceApp):
+    """The arm process: an :class:`ArmSim` driven by the bus (see module docstring).
 
-    def __init__(self, config: ArmConfig, service: Service | None = None) -> None:
-        self.config = config
+    Built without the bus (robot model, simulator, loop state); :meth:`setup` declares the
+    state and transforms publishers and the command subscriber on the skeleton's session.
+    """
+
+    name = SERVICE_NAME
+    svc: Service  #: the bus service (set by :meth:`setup`)
+
+    def __init__(self, config: ArmConfig) -> None:
+        super().__init__(config)
+        self.config: ArmConfig = config
         section = config.arm
         # Tiny matrices every tick: OpenBLAS's pool would busy-wait between ticks.
         limit_blas_threads(1)
         self.robot = section.load_robot()
         self.sim = ArmSim(self.robot, section)
-        self.svc = service or Service(SERVICE_NAME, config)
-        self.keys = self.svc.keys
         self.dt_ns = section.dt_ns
         self.stats = LoopStats()
         self._inbox = command_inbox()
@@ -168,18 +173,26 @@ class ArmService:
         self._frames = self.robot.body_frame_ids()
         rate = section.transforms_rate_hz
         self._tf_every = max(1, round(1e9 / (rate * self.dt_ns))) if rate > 0 else 0
-        self._state_pub = self.svc.publisher(self.keys.arm_state)
-        self._tf_pub = self.svc.publisher(self.keys.arm_transforms) if self._tf_every else None
-        self._cmd_key = self.keys.arm_command.key
+
+    def setup(self, svc: Service) -> None:
+        """Declare the publishers, the command subscriber and the liveliness watches."""
         import zenoh
 
+        self.svc = svc
+        self.keys = svc.keys
+        problem = set_realtime_priority(self.config.arm.rt_priority)
+        if problem:
+            svc.log.warning(problem + "; running with normal scheduling")
+        self._state_pub = svc.publisher(self.keys.arm_state)
+        self._tf_pub = svc.publisher(self.keys.arm_transforms) if self._tf_every else None
+        self._cmd_key = self.keys.arm_command.key
         # On Zenoh's receive thread (no hop through a Python callback thread): it only enqueues.
-        self._cmd_sub = self.svc.session.declare_subscriber(
+        self._cmd_sub = svc.session.declare_subscriber(
             self._cmd_key, zenoh.handlers.Callback(self._on_sample, indirect=False)
         )
-        self.svc.on_close(self._undeclare)
-        if section.watch_services:
-            self.svc.watch_liveliness(section.watch_services, self._on_liveliness)
+        svc.on_close(self._undeclare)
+        if self.config.arm.watch_services:
+            svc.watch_liveliness(self.config.arm.watch_services, self._on_liveliness)
 
     # ------------------------------------------------------------------ zenoh threads
     def _on_sample(self, sample: Any) -> None:
@@ -447,10 +460,12 @@ class ArmService:
             stats.ticks += 1
 
     def run(self) -> dict[str, Any]:
-        """Run until stopped (signal, ``max_ticks``); returns the stats summary."""
-        svc = self.svc
-        svc.start()
-        svc.install_signal_handlers()
+        """Run on the bus until stopped (signal, ``max_ticks``); returns the stats summary."""
+        run_service(self, install_signals=threading.current_thread() is threading.main_thread())
+        return self.summary()
+
+    def loop(self, svc: Service) -> None:
+        """The control loop of the configured clock."""
         section = self.config.arm
         svc.log.info(
             "arm running",
@@ -472,40 +487,12 @@ class ArmService:
                 self.run_realtime()
         finally:
             self.stats.wall_s = time.perf_counter() - t0
-            try:
-                summary = self.summary()
-                svc.log.info(
-                    "arm stopped",
-                    extra={"ticks": self.stats.ticks, **dict(self.sim.counters.items())},
-                )
-                if section.stats_file:
-                    Path(section.stats_file).write_text(json.dumps(summary, indent=2))
-            finally:
-                self._close()  # the bus is closed even if the statistics cannot be written
-        return summary
 
-    #: If set (by :func:`main`, the process entry point), a shutdown whose Zenoh teardown
-    #: hangs for more than ``close_timeout_s`` ends the process (the loop has already stopped
-    #: and the statistics are written).
-    exit_on_hang: bool = False
-    close_timeout_s: float = 5.0
-
-    def _close(self) -> None:
-        timer = None
-        if self.exit_on_hang:
-            timer = threading.Timer(self.close_timeout_s, self._hung)
-            timer.daemon = True
-            timer.start()
-        try:
-            self.svc.close()
-        finally:
-            if timer is not None:
-                timer.cancel()
-
-    def _hung(self) -> None:
-        sys.stderr.write(f"arm: bus shutdown still blocked after {self.close_timeout_s} s; exiting\n")
-        sys.stderr.flush()
-        os._exit(0)
+    def teardown(self, svc: Service) -> None:
+        """Log the counters and write the statistics file."""
+        svc.log.info("arm stopped", extra={"ticks": self.stats.ticks, **dict(self.sim.counters.items())})
+        if self.config.arm.stats_file:
+            Path(self.config.arm.stats_file).write_text(json.dumps(self.summary(), indent=2))
 
     def summary(self) -> dict[str, Any]:
         """Loop statistics + simulation counters + service counters."""
@@ -513,7 +500,8 @@ class ArmService:
         out["clock"] = self.config.clock
         out["dt_s"] = self.config.arm.dt_s
         out["sim_counters"] = dict(self.sim.counters)
-        out["service_counters"] = self.svc.counters.snapshot()
+        svc = getattr(self, "svc", None)
+        out["service_counters"] = svc.counters.snapshot() if svc is not None else {}
         out["final_tick"] = self.sim.tick
         return out
 
@@ -532,10 +520,4 @@ def set_realtime_priority(priority: int) -> str:
 
 def main(config: ArmConfig) -> int:
     """Run the arm service with a loaded config; returns the exit code."""
-    problem = set_realtime_priority(config.arm.rt_priority)
-    service = ArmService(config)
-    service.exit_on_hang = True
-    if problem:
-        service.svc.log.warning(problem + "; running with normal scheduling")
-    service.run()
-    return 0
+    return run_service(ArmService(config))

@@ -1,8 +1,13 @@
-"""Service runtime: one way to open a Zenoh session and run a well-behaved bus service.
+"""Service runtime: the one skeleton every bus process runs on.
 
-:func:`open_session` turns a :class:`~services.bus.config.ZenohConfig` into a session (mode,
-connect/listen endpoints, multicast scouting). :class:`Service` gives every process the same
-behaviour:
+A service process is a :class:`ServiceApp`: a typed config, a ``setup`` (subscriptions,
+publishers, liveliness watches) and optionally a ``loop``. :func:`run_service` does the rest,
+the same way for every process: it opens the session (:func:`open_session`; an unreachable
+router or a busy port is a :class:`~services.bus.errors.BusError`), runs ``setup``, declares
+the liveliness token and starts the status, installs the SIGINT/SIGTERM handlers, runs the
+``loop`` until stopped, runs ``teardown`` and closes the bus (bounded: a hung Zenoh teardown
+ends the process). Errors reach ``services.cli.dispatch``, which prints them as one line.
+The :class:`Service` it hands to the app gives every process the same behaviour:
 
 * structured logging (``text`` or ``json`` lines on stderr) tagged with the service name;
 * a liveliness token at ``Keys.liveliness(name)`` while it runs;
@@ -22,18 +27,21 @@ Example::
 
     from services.bus.config import ServiceConfig, load_config
     from services.bus.messages import ArmCommand, ArmState
-    from services.bus.runtime import Service
+    from services.bus.runtime import Service, ServiceApp, run_service
 
-    cfg = load_config(ServiceConfig)                  # + file/env/flags
-    with Service("planner", cfg) as svc:
-        cmd_pub = svc.publisher(svc.keys.arm_command)
+    class Planner(ServiceApp):
+        name = "planner"
 
-        def on_state(state: ArmState, key: str) -> None:
-            cmd_pub.put(ArmCommand(stamp_ns=state.stamp_ns, tick=state.tick,
-                                   mode=ArmCommand.CARTESIAN_ACCELERATION))
+        def setup(self, svc: Service) -> None:
+            cmd_pub = svc.publisher(svc.keys.arm_command)
 
-        svc.subscribe(svc.keys.arm_state, on_state)
-        svc.run()            # blocks until SIGINT/SIGTERM or svc.stop(); then closes cleanly
+            def on_state(state: ArmState, key: str) -> None:
+                cmd_pub.put(ArmCommand(stamp_ns=state.stamp_ns, tick=state.tick,
+                                       mode=ArmCommand.CARTESIAN_ACCELERATION))
+
+            svc.subscribe(svc.keys.arm_state, on_state)
+
+    run_service(Planner(load_config(ServiceConfig, "configs/stack.toml")))
 """
 
 from __future__ import annotations
@@ -595,21 +603,6 @@ class Service:
         signal.signal(signal.SIGINT, handler)
         signal.signal(signal.SIGTERM, handler)
 
-    def run(self, timeout_s: float | None = None) -> None:
-        """Install the signal handlers and block until stopped (or ``timeout_s`` s), then
-        :meth:`close`."""
-        self.start()
-        self.install_signal_handlers()
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        try:
-            while not self.stop_event.is_set():
-                remaining = 0.5 if deadline is None else min(0.5, deadline - time.monotonic())
-                if remaining <= 0:
-                    break
-                self.stop_event.wait(remaining)
-        finally:
-            self.close()
-
     def stop(self) -> None:
         """Ask :meth:`run` to return (thread-safe)."""
         self.stop_event.set()
@@ -841,8 +834,10 @@ class ServiceApp:
             def setup(self, svc: Service) -> None:
                 svc.subscribe_raw(svc.keys.all.key, self.on_sample)
 
-    Errors raised by ``setup`` (a bad model file, a camera that cannot be opened) end the
-    process with one error line and exit code 2, like a bad config.
+    What can fail without the bus (a model file, a camera device) is best opened in
+    ``__init__``, before the session: the process then fails before it joins the bus. Errors
+    raised by ``__init__`` or ``setup`` end the process with one error line and exit code 2,
+    like a bad config.
     """
 
     name: str = ""
@@ -864,7 +859,8 @@ class ServiceApp:
         svc.wait()
 
     def teardown(self, svc: Service) -> None:
-        """Called after the loop, before the bus is closed (write statistics, close files)."""
+        """Called after the loop (or after a failed :meth:`setup`: it must cope with a partial
+        set-up), before the bus is closed: write statistics, close files and devices."""
 
 
 #: A shutdown whose Zenoh teardown hangs this long ends the process (the loop has stopped).
@@ -877,11 +873,11 @@ def run_service(app: ServiceApp, *, session: Any | None = None, install_signals:
     Returns the exit code."""
     svc = Service(app.name, app.config, session=session, zenoh=app.zenoh_config())
     try:
-        app.setup(svc)
-        svc.start()
-        if install_signals:
-            svc.install_signal_handlers()
         try:
+            app.setup(svc)
+            svc.start()
+            if install_signals:
+                svc.install_signal_handlers()
             app.loop(svc)
         finally:
             app.teardown(svc)

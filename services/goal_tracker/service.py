@@ -30,6 +30,7 @@ from services.bus.messages import (
     PoseInFrame,
     Vec3,
 )
+from services.bus.runtime import Service, ServiceApp
 from services.goal_tracker.config import (
     GoalTrackerSection,
     TrackerConfig,
@@ -188,23 +189,36 @@ def main(config: TrackerConfig, *, max_frames: int = 0) -> int:
 
     Raises :class:`CameraOpenError` / ``FileNotFoundError`` before joining the bus when the
     source or a model file cannot be opened (the CLI prints them as one line)."""
-    from services.bus.runtime import Service
+    from services.bus.runtime import run_service
 
-    sec = config.goal_tracker
-    cam = sec.camera
-    # One frame at a time on this thread: OpenCV's and OpenBLAS's pools would busy-wait
-    # between frames (measured: an OpenCV worker at ~70 % of the main thread's CPU).
-    limit_opencv_threads(1)
-    limit_blas_threads(1)
-    tracker = build_tracker(sec)
-    source = open_capture(sec, threading.Event())
-    svc = Service(SERVICE_NAME, config)
-    if isinstance(source, VideoCaptureSource | SyntheticSource):
-        source.stop = svc.stop_event  # SIGTERM also aborts a source's waits
-    keys = svc.keys
-    try:
-        svc.start()
-        svc.install_signal_handlers()
+    return run_service(GoalTrackerService(config, max_frames=max_frames))
+
+
+class GoalTrackerService(ServiceApp):
+    """Camera frames -> face detections -> the person's goal (see the module docstring).
+
+    The detector, the filter and a device, file or URL source are opened before the bus."""
+
+    name = SERVICE_NAME
+
+    def __init__(self, config: TrackerConfig, *, max_frames: int = 0) -> None:
+        super().__init__(config)
+        self.sec = config.goal_tracker
+        self.max_frames = max_frames
+        # One frame at a time on this thread: OpenCV's and OpenBLAS's pools would busy-wait
+        # between frames (measured: an OpenCV worker at ~70 % of the main thread's CPU).
+        limit_opencv_threads(1)
+        limit_blas_threads(1)
+        self.tracker = build_tracker(self.sec)
+        self.source: FrameSource | None = open_capture(self.sec, threading.Event())
+
+    def setup(self, svc: Service) -> None:
+        """The bus-fed sources (synthetic on the arm's clock, an image topic) and the
+        publishers."""
+        sec, cam, keys = self.sec, self.sec.camera, svc.keys
+        source = self.source
+        if isinstance(source, VideoCaptureSource | SyntheticSource):
+            source.stop = svc.stop_event  # SIGTERM also aborts a source's waits
         if source is None and cam.source == "synthetic":
             source = _synthetic_on_bus(svc, sec)
         elif source is None:
@@ -218,24 +232,25 @@ def main(config: TrackerConfig, *, max_frames: int = 0) -> int:
 
             svc.subscribe(keys.camera_image(cam.camera_id), on_image)
             source = queue_source
-        faces_pub = svc.publisher(keys.vision_faces)
-        goal_pub = svc.publisher(keys.goal(sec.goal_name))
-        pose_pub = svc.publisher(keys.goal_pose(sec.goal_name))
-        image_pub = None if cam.source == "topic" else svc.publisher(keys.camera_image(cam.camera_id))
+        self.source = source
+        self.faces_pub = svc.publisher(keys.vision_faces)
+        self.goal_pub = svc.publisher(keys.goal(sec.goal_name))
+        self.pose_pub = svc.publisher(keys.goal_pose(sec.goal_name))
+        self.image_pub = None if cam.source == "topic" else svc.publisher(keys.camera_image(cam.camera_id))
         svc.log.info(
             "tracking",
-            extra={
-                "source": source.description,
-                "goal": sec.goal_name,
-                "detector": sec.detector.kind,
-            },
+            extra={"source": source.description, "goal": sec.goal_name, "detector": sec.detector.kind},
         )
-        return _loop(svc, sec, tracker, source, faces_pub, goal_pub, pose_pub, image_pub, max_frames)
-    finally:
-        if source is not None:
-            source.close()
-        svc.log.info("tracker stats", extra=tracker.stats.as_dict())
-        svc.close()
+
+    def loop(self, svc: Service) -> None:
+        assert self.source is not None
+        self.exit_code = _loop(svc, self.sec, self.tracker, self.source, self.faces_pub, self.goal_pub,
+                               self.pose_pub, self.image_pub, self.max_frames)
+
+    def teardown(self, svc: Service) -> None:
+        if self.source is not None:
+            self.source.close()
+        svc.log.info("tracker stats", extra=self.tracker.stats.as_dict())
 
 
 def _loop(
@@ -337,29 +352,45 @@ def camera_main(config: TrackerConfig, *, max_frames: int = 0) -> int:
     """Run the synthetic camera alone: publish JPEG frames on ``<prefix>/camera/<id>/image`` at
     ``synthetic.fps`` (every frame, no throttling), with wall-clock or arm sim-clock frame times.
     Stops at SIGINT/SIGTERM or after ``synthetic.frames`` / ``max_frames`` frames."""
-    from services.bus.runtime import Service
+    from services.bus.runtime import run_service
 
-    sec = config.goal_tracker
-    cam = sec.camera
-    limit = max_frames or sec.synthetic.frames
-    limit_opencv_threads(1)
-    with Service(CAMERA_SERVICE_NAME, config) as svc:
-        svc.install_signal_handlers()
+    return run_service(SyntheticCameraService(config, max_frames=max_frames))
+
+
+class SyntheticCameraService(ServiceApp):
+    """The synthetic camera on the bus (frame times from the wall clock or the arm's)."""
+
+    name = CAMERA_SERVICE_NAME
+
+    def __init__(self, config: TrackerConfig, *, max_frames: int = 0) -> None:
+        super().__init__(config)
+        self.sec = config.goal_tracker
+        self.limit = max_frames or self.sec.synthetic.frames
+        self.sent = 0
+        self.source: Any = None
+        limit_opencv_threads(1)
+
+    def setup(self, svc: Service) -> None:
+        sec, cam = self.sec, self.sec.camera
         if sec.synthetic.clock == "arm":
-            source = _synthetic_on_bus(svc, sec)
+            self.source = _synthetic_on_bus(svc, sec)
         else:
-            source = SyntheticSource(build_synthetic_camera(sec), sec.synthetic.fps, stop=svc.stop_event)
-        pub = svc.publisher(svc.keys.camera_image(cam.camera_id))
+            self.source = SyntheticSource(build_synthetic_camera(sec), sec.synthetic.fps, stop=svc.stop_event)
+        self.pub = svc.publisher(svc.keys.camera_image(cam.camera_id))
         svc.log.info(
             "publishing",
-            extra={"source": source.description, "key": svc.keys.camera_image(cam.camera_id).key},
+            extra={"source": self.source.description, "key": svc.keys.camera_image(cam.camera_id).key},
         )
-        sent = 0
-        while not svc.stop_event.is_set() and not (limit and sent >= limit):
+
+    def loop(self, svc: Service) -> None:
+        cam, source, limit = self.sec.camera, self.source, self.limit
+        while not svc.stop_event.is_set() and not (limit and self.sent >= limit):
             frame = source.read(0.2)
             if frame is None:
                 continue
-            pub.put(jpeg_image(frame.image, frame.stamp_ns, cam.camera_id, cam.jpeg_quality))
-            sent += 1
-        svc.log.info("camera done", extra={"frames": sent, "dropped": source.dropped})
-    return 0
+            self.pub.put(jpeg_image(frame.image, frame.stamp_ns, cam.camera_id, cam.jpeg_quality))
+            self.sent += 1
+
+    def teardown(self, svc: Service) -> None:
+        dropped = self.source.dropped if self.source is not None else 0
+        svc.log.info("camera done", extra={"frames": self.sent, "dropped": dropped})

@@ -19,13 +19,25 @@ from services.bus.config import ZenohConfig
 from services.bus.messages import ServiceStatus
 
 
-def _arm(**arm: Any) -> ArmService:
+def _arm(clock: str = "realtime", **arm: Any) -> ArmService:
     cfg = ArmConfig(
         zenoh=ZenohConfig(mode="peer", multicast=False, gossip=False),
         log_level="ERROR",
+        clock=clock,
         arm=ArmSection(**arm),
     )
     return ArmService(cfg)
+
+
+def _after_setup(arm: ArmService, fn: Any) -> None:
+    """Call ``fn()`` once the arm has declared its publishers (to install spies on them)."""
+    setup = arm.setup
+
+    def wrapped(svc: Any) -> None:
+        setup(svc)
+        fn()
+
+    arm.setup = wrapped  # type: ignore[method-assign]
 
 
 def _run_in_thread(svc: ArmService) -> threading.Thread:
@@ -39,25 +51,29 @@ def test_realtime_stamps_are_epoch_and_a_stall_is_caught_up() -> None:
     sim = svc.sim
     stamps: list[tuple[int, int]] = []
     transforms: list[int] = []
-    put_state = svc._state_pub.put_bytes
 
-    def spy_state(payload: bytes) -> None:
-        from services.bus.messages import ArmState
+    def spies() -> None:
+        put_state = svc._state_pub.put_bytes
 
-        msg = ArmState.FromString(payload)
-        stamps.append((msg.tick, msg.stamp_ns))
-        put_state(payload)
+        def spy_state(payload: bytes) -> None:
+            from services.bus.messages import ArmState
 
-    assert svc._tf_pub is not None
-    put_tf = svc._tf_pub.put
+            msg = ArmState.FromString(payload)
+            stamps.append((msg.tick, msg.stamp_ns))
+            put_state(payload)
 
-    def spy_tf(msg: Any) -> None:
-        ts = msg.transforms[0].timestamp
-        transforms.append(ts.seconds * 1_000_000_000 + ts.nanos)
-        put_tf(msg)
+        assert svc._tf_pub is not None
+        put_tf = svc._tf_pub.put
 
-    svc._state_pub.put_bytes = spy_state  # type: ignore[method-assign]
-    svc._tf_pub.put = spy_tf  # type: ignore[method-assign]
+        def spy_tf(msg: Any) -> None:
+            ts = msg.transforms[0].timestamp
+            transforms.append(ts.seconds * 1_000_000_000 + ts.nanos)
+            put_tf(msg)
+
+        svc._state_pub.put_bytes = spy_state  # type: ignore[method-assign]
+        svc._tf_pub.put = spy_tf  # type: ignore[method-assign]
+
+    _after_setup(svc, spies)
     step = sim.step
     stalled = {"done": False}
 
@@ -95,18 +111,20 @@ def test_realtime_stamps_are_epoch_and_a_stall_is_caught_up() -> None:
 
 
 def test_degraded_status_is_set_and_cleared() -> None:
-    svc = _arm(dt_s=0.002, max_ticks=1)
+    from services.bus.runtime import Service
+
+    bus = Service("arm", _arm().config)
     try:
-        assert svc.svc.status_message().state != ServiceStatus.DEGRADED
-        svc.svc.state = ServiceStatus.RUNNING
-        svc.svc.set_degraded("realtime: 5 ticks missed")
-        msg = svc.svc.status_message()
+        assert bus.status_message().state != ServiceStatus.DEGRADED
+        bus.state = ServiceStatus.RUNNING
+        bus.set_degraded("realtime: 5 ticks missed")
+        msg = bus.status_message()
         assert msg.state == ServiceStatus.DEGRADED
         assert msg.last_error == "realtime: 5 ticks missed"
-        svc.svc.set_degraded(None)
-        assert svc.svc.status_message().state == ServiceStatus.RUNNING
+        bus.set_degraded(None)
+        assert bus.status_message().state == ServiceStatus.RUNNING
     finally:
-        svc.svc.close()
+        bus.close()
 
 
 def test_missed_ticks_make_the_arm_degraded_then_it_recovers(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -138,15 +156,19 @@ def test_missed_ticks_make_the_arm_degraded_then_it_recovers(monkeypatch: pytest
 def test_lockstep_sim_time_starts_at_zero() -> None:
     svc = _arm(clock="lockstep", dt_s=0.002, lockstep_timeout_s=0.05)
     stamps: list[int] = []
-    put_state = svc._state_pub.put_bytes
 
-    def spy_state(payload: bytes) -> None:
-        from services.bus.messages import ArmState
+    def spies() -> None:
+        put_state = svc._state_pub.put_bytes
 
-        stamps.append(ArmState.FromString(payload).stamp_ns)
-        put_state(payload)
+        def spy_state(payload: bytes) -> None:
+            from services.bus.messages import ArmState
 
-    svc._state_pub.put_bytes = spy_state  # type: ignore[method-assign]
+            stamps.append(ArmState.FromString(payload).stamp_ns)
+            put_state(payload)
+
+        svc._state_pub.put_bytes = spy_state  # type: ignore[method-assign]
+
+    _after_setup(svc, spies)
     th = _run_in_thread(svc)
     time.sleep(1.0)  # no planner: state 0 is re-offered, sim time does not run
     svc.svc.stop()

@@ -108,7 +108,8 @@ def test_record_retry_after_failed_start_needs_no_overwrite(procs, tmp_path: Pat
     port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     out = tmp_path / "retry.mcap"
-    args = ["record", "-o", str(out), "--mode", "client", "--connect", ep, "--no-multicast"]
+    args = ["record", "-o", str(out), "--mode", "client", "--connect", ep, "--no-multicast",
+            "--set", "status_period_s=0.2"]
     r = run_psm(*args)
     assert one_error_line(r, "psm record").startswith(f"cannot connect to {ep}")
     assert not out.exists() and list(tmp_path.iterdir()) == []
