@@ -35,8 +35,6 @@ import json
 import os
 import platform
 import queue
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -45,16 +43,12 @@ from typing import Any
 
 import numpy as np
 
+from services.supervisor import ManagedProcess, free_port, psm_argv
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 #: SCHED_FIFO priority of the arm and controller in the "_fifo" runs (as a real-time driver).
 RT_PRIORITY = 50
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _pct(values: np.ndarray) -> dict[str, float]:
@@ -207,17 +201,19 @@ def bench_pingpong(n: int, low_latency: bool) -> dict[str, Any]:
     """Raw zenoh-python round trip (two processes, loopback TCP), µs."""
     import zenoh
 
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     s = zenoh.open(_raw_config(low_latency, listen=endpoint))
     inbox: queue.SimpleQueue[int] = queue.SimpleQueue()
     sub = s.declare_subscriber("bench/pong", lambda smp: inbox.put(time.perf_counter_ns()))
     pub = s.declare_publisher("bench/ping", express=True, priority=zenoh.Priority.REAL_TIME)
-    proc = subprocess.Popen(
+    logs = tempfile.TemporaryDirectory()
+    proc = ManagedProcess(
+        "pong",
         [
             sys.executable, "-m", "benchmarks.arm", "--pong", endpoint,
             "--pong-seconds", str(30 + n / 1000), *(["--pong-low-latency"] if low_latency else []),
         ],
-        cwd=ROOT,
+        Path(logs.name) / "pong.log",
     )
     try:
         payload = b"\x00" * 300
@@ -242,8 +238,8 @@ def bench_pingpong(n: int, low_latency: bool) -> dict[str, Any]:
             rtt.append(t1 - t0)
             time.sleep(0.0002)
     finally:
-        proc.terminate()
-        proc.wait(10)
+        proc.stop(10)
+        logs.cleanup()
         sub.undeclare()
         s.close()
     out = _pct(np.array(rtt[50:]) / 1e3)
@@ -258,26 +254,25 @@ def run_loop(
     """Run the arm process + the probe process for ``ticks`` ticks (both at ``SCHED_FIFO``
     ``rt_priority`` if > 0, both on Zenoh's low-latency transport if ``low_latency``); returns
     the arm's stats."""
-    endpoint = f"tcp/127.0.0.1:{_free_port()}"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
     stats = tmp / f"arm-{clock}-{dt}-{rt_priority}-{int(low_latency)}.json"
     rt = ["--rt-priority", str(rt_priority)]
     transport = "--low-latency" if low_latency else "--no-low-latency"
     common = ["--no-multicast", "--log-level", "WARNING", transport]
     bus_arm = ["--mode", "peer", "--listen", endpoint, *common]
     bus_probe = ["--mode", "peer", "--connect", endpoint, *common]
-    probe = subprocess.Popen(
-        [sys.executable, "-m", "services.arm.probe", "--pattern", "sine", *rt, *bus_probe],
-        cwd=ROOT,
+    name = f"{clock}-{dt}-{rt_priority}-{int(low_latency)}"
+    probe = ManagedProcess(
+        f"probe-{name}", psm_argv(["arm", "probe", "--pattern", "sine", *rt, *bus_probe]),
+        tmp / f"probe-{name}.log",
     )
     # Realtime: let the probe connect first (the arm starts ticking at once); lockstep waits.
     time.sleep(1.5)
     load_before = _load()
     cpu_before = _cpu_times()
-    arm = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "services.arm",
+    arm = ManagedProcess(
+        f"arm-{name}",
+        psm_argv([
             "arm",
             "--clock",
             clock,
@@ -289,17 +284,14 @@ def run_loop(
             str(stats),
             *rt,
             *bus_arm,
-        ],
-        cwd=ROOT,
+        ]),
+        tmp / f"arm-{name}.log",
     )
     try:
-        arm.wait(timeout=ticks * dt * 3 + 300)
+        arm.wait(ticks * dt * 3 + 300)
     finally:
-        if arm.poll() is None:
-            arm.kill()
-            arm.wait(5)
-        probe.terminate()
-        probe.wait(10)
+        arm.stop(5)
+        probe.stop(10)
     result = json.loads(stats.read_text())
     result["loadavg_before"] = load_before
     result["loadavg_after"] = _load()

@@ -38,8 +38,6 @@ import json
 import os
 import platform
 import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import threading
@@ -47,15 +45,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+from services.supervisor import ManagedProcess, free_port
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 QOS = {"express": True}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _cfg(listen: str | None = None, connect: str | None = None, prefix: str = "psm") -> Any:
@@ -69,22 +63,31 @@ def _cfg(listen: str | None = None, connect: str | None = None, prefix: str = "p
     return load_config(ServiceConfig, env={}, overrides=ov)
 
 
-def _spawn(*args: str) -> subprocess.Popen[bytes]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
-    return subprocess.Popen([sys.executable, *args], cwd=ROOT, env=env,
-                            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+def _spawn(workdir: Path, name: str, *args: str) -> ManagedProcess:
+    """Start ``python args`` through the supervisor's process class (log in ``workdir``)."""
+    return ManagedProcess(name, [sys.executable, *args], workdir / f"{name}.log")
 
 
-def _stop(p: subprocess.Popen[bytes], sig: int = signal.SIGTERM) -> int:
-    if p.poll() is None:
-        os.kill(p.pid, sig)
-        try:
-            return p.wait(30)
-        except subprocess.TimeoutExpired:
-            os.kill(p.pid, signal.SIGKILL)
-            return p.wait(10)
-    return int(p.returncode)
+def _line(proc: ManagedProcess, start: str, timeout_s: float) -> str:
+    """The first line of ``proc``'s output that starts with ``start`` (bounded wait)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for line in proc.log_text().splitlines():
+            if line.startswith(start):
+                return line
+        if not proc.alive():
+            break
+        time.sleep(0.02)
+    raise RuntimeError(f"{proc.name} printed no line starting with {start!r}: {proc.log_tail()}")
+
+
+def _until_terminated() -> None:
+    """Block until SIGTERM or SIGINT (the child roles' lifetime)."""
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.5):
+        pass
 
 
 def _pct(values: list[float], q: float) -> float:
@@ -116,7 +119,7 @@ def _pong_raw(endpoint: str) -> None:
                                     congestion_control=zenoh.CongestionControl.BLOCK)
     sub = session.declare_subscriber("bench/raw/ping", lambda s: pub.put(s.payload))
     print("ready", flush=True)
-    sys.stdin.read()
+    _until_terminated()
     sub.undeclare()
     session.close()
 
@@ -135,7 +138,7 @@ def _pong_runtime(endpoint: str, delivery: str | None = None) -> None:
 
     svc.subscribe(svc.keys.arm_state, on_state, delivery=delivery)
     print("ready", flush=True)
-    sys.stdin.read()
+    _until_terminated()
     svc.close()
 
 
@@ -146,20 +149,15 @@ def bench_latency(n_blocks: int, per_block: int, warmup: int) -> dict[str, Any]:
     from services.bus.messages import ArmCommand, ArmState
     from services.bus.runtime import Service
 
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_port()}"
     svc = Service("ping", _cfg(listen=ep, prefix="bench")).start()
     session = svc.session
     pongs = []
+    logs = tempfile.TemporaryDirectory()
     for role in ("pong-raw", "pong-runtime", "pong-inline"):
-        p = subprocess.Popen([sys.executable, "-m", "benchmarks.bus", "--role", role,
-                              "--endpoint", ep], cwd=ROOT, stdin=subprocess.PIPE,
-                             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                             env={**os.environ, "PYTHONPATH": str(ROOT)})
-        assert p.stdout is not None
-        line = p.stdout.readline()
-        if b"ready" not in line:
-            raise RuntimeError(f"{role} did not start")
+        p = _spawn(Path(logs.name), role, "-m", "benchmarks.bus", "--role", role, "--endpoint", ep)
         pongs.append(p)
+        _line(p, "ready", 60)
     try:
         # raw path
         raw_event = threading.Event()
@@ -244,12 +242,8 @@ def bench_latency(n_blocks: int, per_block: int, warmup: int) -> dict[str, Any]:
         raw_pub.undeclare()
     finally:
         for p in pongs:
-            assert p.stdin is not None
-            p.stdin.close()
-            try:
-                p.wait(10)
-            except subprocess.TimeoutExpired:
-                _stop(p, signal.SIGKILL)
+            p.stop(10)
+        logs.cleanup()
         svc.close()
     res = {
         "round_trips_each": len(raw),
@@ -354,11 +348,11 @@ def bench_recorder(kind: str, rate: float, seconds: float, workdir: Path) -> dic
     from services.bus.messages import Keys
     from services.bus.runtime import Service
 
-    port = _free_port()
+    port = free_port()
     ep = f"tcp/127.0.0.1:{port}"
     out = workdir / f"rec-{kind}-{int(rate)}.mcap"
-    rec = _spawn("-m", "services.bus.cli", "record", "-o", str(out), "--listen", ep,
-                 "--no-multicast", "--log-level", "WARNING", "--set", "status_period_s=0.1")
+    rec = _spawn(workdir, f"recorder-{kind}-{int(rate)}", "-m", "services.bus.cli", "record", "-o", str(out),
+                 "--listen", ep, "--no-multicast", "--log-level", "WARNING", "--set", "status_period_s=0.1")
     statuses: list[tuple[float, Any]] = []
     watcher = Service("benchwatch", _cfg(connect=ep)).start()
     watcher.subscribe(Keys().status("recorder"), lambda m, _k: statuses.append((time.time(), m)))
@@ -368,11 +362,11 @@ def bench_recorder(kind: str, rate: float, seconds: float, workdir: Path) -> dic
             time.sleep(0.05)
         if not statuses:
             raise RuntimeError("recorder did not start")
-        pub = _spawn("-m", "benchmarks.bus", "--role", f"pub-{kind}", "--endpoint", ep,
-                     "--rate", str(rate), "--seconds", str(seconds))
-        assert pub.stdout is not None
-        report = json.loads(pub.stdout.readline() or b"{}")
+        pub = _spawn(workdir, f"pub-{kind}-{int(rate)}", "-m", "benchmarks.bus", "--role", f"pub-{kind}",
+                     "--endpoint", ep, "--rate", str(rate), "--seconds", str(seconds))
+        report = json.loads(_line(pub, "{", seconds + 60))
         pub.wait(60)
+        pub.stop()
         sent = int(report["sent"])
         end_wall = float(report["end_wall"])
         # Stop the recorder only once it has everything: its `received` (which also counts
@@ -393,7 +387,7 @@ def bench_recorder(kind: str, rate: float, seconds: float, workdir: Path) -> dic
         max_backlog = max((st.queued for _, st in statuses), default=0)
     finally:
         watcher.close()
-        rc = _stop(rec)
+        rc = rec.stop(30)
     key = Keys().arm_state.key if kind == "small" else Keys().camera_image("bench").key
     recorded = 0
     last_log_ns = 0

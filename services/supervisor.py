@@ -93,6 +93,7 @@ class ManagedProcess:
         *,
         env: Mapping[str, str] | None = None,
         cwd: str | Path | None = None,
+        stderr_path: Path | None = None,
     ) -> None:
         self.name = name
         self.argv = list(argv)
@@ -106,13 +107,15 @@ class ManagedProcess:
         root = str(Path(__file__).resolve().parents[1])
         full_env["PYTHONPATH"] = root + os.pathsep + full_env.get("PYTHONPATH", "")
         self._log = self.log_path.open("wb")
+        self.stderr_path = stderr_path
+        self._err = stderr_path.open("wb") if stderr_path is not None else None
         self.started = time.monotonic()
         self.ended: float | None = None
         self.popen = subprocess.Popen(
             self.argv,
             stdin=subprocess.DEVNULL,
             stdout=self._log,
-            stderr=subprocess.STDOUT,
+            stderr=self._err if self._err is not None else subprocess.STDOUT,
             env=full_env,
             cwd=cwd or root,
             start_new_session=True,
@@ -154,6 +157,17 @@ class ManagedProcess:
             self._log.flush()
         try:
             return self.log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+
+    def stderr_text(self) -> str:
+        """What the process wrote to stderr (with ``stderr_path``; else its whole output)."""
+        if self._err is None or self.stderr_path is None:
+            return self.log_text()
+        if not self._err.closed:
+            self._err.flush()
+        try:
+            return self.stderr_path.read_text(errors="replace")
         except OSError:
             return ""
 
@@ -201,6 +215,8 @@ class ManagedProcess:
             return int(rc)
         finally:
             self._log.close()
+            if self._err is not None:
+                self._err.close()
 
 
 class StackFailureError(RuntimeError):

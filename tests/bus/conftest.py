@@ -7,7 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from .helpers import Proc, free_port, port_open, wait_for
+from services.supervisor import free_port
+
+from .helpers import Proc, port_open, wait_for
 
 
 @pytest.fixture

@@ -1,11 +1,10 @@
-"""Helpers for the bus tests: free ports, service processes started with
-``sys.executable -m ...`` and cleaned up by PID, an in-process bus client."""
+"""Helpers for the bus tests: service processes started with ``sys.executable -m ...`` through
+the supervisor's process class and cleaned up by PID, an in-process bus client."""
 
 from __future__ import annotations
 
 import os
 import re
-import signal
 import socket
 import subprocess
 import sys
@@ -13,14 +12,9 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from services.supervisor import ManagedProcess
+
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def wait_for(pred: Callable[[], bool], timeout_s: float = 10.0, period_s: float = 0.02) -> bool:
@@ -33,60 +27,24 @@ def wait_for(pred: Callable[[], bool], timeout_s: float = 10.0, period_s: float 
     return bool(pred())
 
 
-class Proc:
-    """A child process with its output captured to files."""
+class Proc(ManagedProcess):
+    """A child process (the supervisor's :class:`~services.supervisor.ManagedProcess`) with
+    stdout and stderr captured to separate files and no ``PSM_*`` variable of the test's
+    environment."""
 
     def __init__(self, args: list[str], workdir: Path, name: str, env: dict | None = None):
-        self.name = name
-        self.out_path = workdir / f"{name}.out"
-        self.err_path = workdir / f"{name}.err"
-        full_env = dict(os.environ)
-        full_env["PYTHONPATH"] = str(ROOT) + os.pathsep + full_env.get("PYTHONPATH", "")
-        for k in list(full_env):
-            if k.startswith("PSM_"):
-                del full_env[k]
+        full_env = {k: v for k, v in os.environ.items() if not k.startswith("PSM_")}
         full_env.update(env or {})
-        self._out = self.out_path.open("wb")
-        self._err = self.err_path.open("wb")
-        self.popen = subprocess.Popen(
-            [sys.executable, *args], cwd=ROOT, env=full_env, stdout=self._out, stderr=self._err
-        )
-
-    @property
-    def pid(self) -> int:
-        return self.popen.pid
-
-    def alive(self) -> bool:
-        return self.popen.poll() is None
-
-    def signal(self, sig: int) -> None:
-        if self.alive():
-            os.kill(self.pid, sig)
-
-    def wait(self, timeout_s: float = 20.0) -> int:
-        return self.popen.wait(timeout=timeout_s)
+        super().__init__(name, [sys.executable, *args], workdir / f"{name}.out", env=full_env,
+                         stderr_path=workdir / f"{name}.err")
 
     def stderr(self) -> str:
-        self._err.flush()
-        return self.err_path.read_text(errors="replace")
+        """What the process wrote to stderr so far."""
+        return self.stderr_text()
 
     def stdout(self) -> str:
-        self._out.flush()
-        return self.out_path.read_text(errors="replace")
-
-    def stop(self) -> None:
-        """SIGTERM, then SIGKILL after 10 s; always reaps."""
-        try:
-            if self.alive():
-                os.kill(self.pid, signal.SIGTERM)
-                try:
-                    self.popen.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    os.kill(self.pid, signal.SIGKILL)
-                    self.popen.wait(timeout=10)
-        finally:
-            self._out.close()
-            self._err.close()
+        """What the process wrote to stdout so far."""
+        return self.log_text()
 
 
 def bus_args(endpoint: str) -> list[str]:

@@ -14,9 +14,10 @@ import pytest
 
 from services.bus.log import read_samples
 from services.bus.runtime import RawSample, Service
+from services.supervisor import free_port
 
 from .fixture_data import PATH as FIXTURE
-from .helpers import bus_args, client_config, free_port, one_error_line, run_psm, wait_for
+from .helpers import bus_args, client_config, one_error_line, run_psm, wait_for
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(120)]
 

@@ -347,8 +347,7 @@ def test_low_latency_transport_peers_exchange_every_message_in_order() -> None:
     Zenoh (QoS off, which Zenoh requires) and a peer-to-peer link delivers everything in order."""
     from services.bus.config import ServiceConfig, load_config
     from services.bus.runtime import zenoh_config
-
-    from .helpers import free_port
+    from services.supervisor import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     base = {"zenoh.multicast": False, "zenoh.gossip": False, "zenoh.low_latency": True,
