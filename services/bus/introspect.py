@@ -75,13 +75,19 @@ def status_table(prefix: str, alive: set[str], statuses: dict[str, Any]) -> Any:
     return t
 
 
-def run_status(cfg: ServiceConfig, *, watch: bool = False, wait_s: float = 1.5) -> int:
-    """``psm status``: print the services alive on the prefix (exit 1 when none is)."""
+def _console() -> Any:
+    """A rich console; wide enough for the tables when the output is not a terminal."""
     from rich.console import Console
 
+    console = Console()
+    return console if console.is_terminal else Console(width=200)
+
+
+def run_status(cfg: ServiceConfig, *, watch: bool = False, wait_s: float = 1.5) -> int:
+    """``psm status``: print the services alive on the prefix (exit 1 when none is)."""
     from services.bus.runtime import open_session
 
-    console = Console()
+    console = _console()
     session = open_session(cfg.zenoh)
     try:
         while True:
@@ -179,11 +185,9 @@ def topics_table(prefix: str, stats: dict[str, TopicStats], window_s: float) -> 
 
 def run_topics(cfg: ServiceConfig, *, window_s: float = 2.0, watch: bool = False) -> int:
     """``psm topics``: print the live keys (exit 1 when nothing was heard)."""
-    from rich.console import Console
-
     from services.bus.runtime import open_session
 
-    console = Console()
+    console = _console()
     session = open_session(cfg.zenoh)
     try:
         while True:
