@@ -32,6 +32,7 @@ anything starts) and that every table belongs to some process.
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -63,65 +64,31 @@ __all__ = [
 DEFAULT_STACK = Path(__file__).resolve().parents[1] / "configs" / "stack.toml"
 
 
-def _router_config() -> type[ServiceConfig]:
-    from services.bus.router import RouterConfig
-
-    return RouterConfig
-
-
-def _arm_config() -> type[ServiceConfig]:
-    from services.arm.config import ArmConfig
-
-    return ArmConfig
-
-
-def _tracker_config() -> type[ServiceConfig]:
-    from services.goal_tracker.config import TrackerConfig
-
-    return TrackerConfig
-
-
-def _recorder_config() -> type[ServiceConfig]:
-    from services.bus.recorder import RecorderConfig
-
-    return RecorderConfig
-
-
-def _replayer_config() -> type[ServiceConfig]:
-    from services.bus.replayer import ReplayerConfig
-
-    return ReplayerConfig
-
-
-def _echo_config() -> type[ServiceConfig]:
-    from services.bus.echo import EchoConfig
-
-    return EchoConfig
-
-
-def _probe_config() -> type[ServiceConfig]:
-    return ServiceConfig
-
-
 @dataclass(frozen=True)
 class Command:
-    """A ``psm`` sub-command that can run in a stack: its config model and the name of the
-    liveliness token it declares (``None``: the process's name)."""
+    """A ``psm`` sub-command that can run in a stack: its config model (``module:Class``,
+    imported when needed) and the name of the liveliness token it declares (``None``: the
+    process's name)."""
 
-    config: Any  #: () -> type[ServiceConfig], imported lazily
+    config: str
     service: str | None = None
+
+    def config_class(self) -> type[ServiceConfig]:
+        """The config model."""
+        module, _, name = self.config.partition(":")
+        return getattr(importlib.import_module(module), name)  # type: ignore[no-any-return]
 
 
 #: The sub-commands a stack can run, by their words after ``psm``.
 COMMANDS: dict[tuple[str, ...], Command] = {
-    ("serve", "router"): Command(_router_config, "router"),
-    ("arm",): Command(_arm_config, "arm"),
-    ("arm", "probe"): Command(_probe_config, "probe"),
-    ("camera", "synth"): Command(_tracker_config, "camera_synth"),
-    ("track",): Command(_tracker_config, "goal_tracker"),
-    ("record",): Command(_recorder_config, "recorder"),
-    ("replay",): Command(_replayer_config, "replayer"),
-    ("echo",): Command(_echo_config, "echo"),
+    ("serve", "router"): Command("services.bus.router:RouterConfig", "router"),
+    ("arm",): Command("services.arm.config:ArmConfig", "arm"),
+    ("arm", "probe"): Command("services.bus.config:ServiceConfig", "probe"),
+    ("camera", "synth"): Command("services.goal_tracker.config:TrackerConfig", "camera_synth"),
+    ("track",): Command("services.goal_tracker.config:TrackerConfig", "goal_tracker"),
+    ("record",): Command("services.bus.recorder:RecorderConfig", "recorder"),
+    ("replay",): Command("services.bus.replayer:ReplayerConfig", "replayer"),
+    ("echo",): Command("services.bus.echo:EchoConfig", "echo"),
 }
 
 
@@ -137,7 +104,7 @@ def _command_of(argv: Sequence[str]) -> tuple[tuple[str, ...], Command]:
 
 def config_class(argv: Sequence[str]) -> type[ServiceConfig]:
     """The config model of the process ``psm <argv...>``."""
-    return _command_of(argv)[1].config()
+    return _command_of(argv)[1].config_class()
 
 
 class ProcessSpec(Section):

@@ -10,16 +10,11 @@ __all__ = ["register"]
 
 
 def _cmd_up(args: argparse.Namespace) -> int:
-    from services.bus.config import ConfigError, env_var_name, parse_override
+    from services.bus.config import ConfigError, env_var_name, parse_override, set_items
     from services.stack import DEFAULT_STACK, load_stack
     from services.supervisor import run_stack
 
-    overrides: dict[str, Any] = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ConfigError("", f"--set expects PATH=VALUE, got {item!r}")
-        overrides[key.strip()] = value
+    overrides: dict[str, Any] = dict(set_items(args.set))
     if args.clock:
         overrides["clock"] = args.clock
     if args.record:

@@ -40,8 +40,7 @@ import json
 import math
 import os
 import tomllib
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
@@ -77,7 +76,6 @@ __all__ = [
     "config_from_args",
     "config_to_dict",
     "env_var_name",
-    "field_defaults",
     "load_config",
     "parse_override",
 ]
@@ -427,22 +425,6 @@ def config_to_dict(cfg: BaseModel) -> dict[str, Any]:
     return cfg.model_dump(mode="json")
 
 
-def field_defaults(cls: type[BaseModel]) -> dict[str, Any]:
-    """The default of every field of ``cls`` (for help texts that show them)."""
-    return {name: f.get_default(call_default_factory=True) for name, f in cls.model_fields.items()}
-
-
-@contextmanager
-def sources(data: Mapping[str, Any], env: Mapping[str, str] | None = None) -> Iterator[None]:
-    """Layer ``data`` (a parsed TOML document) and ``env`` under the init arguments of every
-    :class:`ServiceConfig` built inside the block (the stack validator uses this)."""
-    token = _SOURCES.set(_Sources(data, env))
-    try:
-        yield
-    finally:
-        _SOURCES.reset(token)
-
-
 # --------------------------------------------------------------------------------------------
 # Command-line integration
 # --------------------------------------------------------------------------------------------
@@ -489,12 +471,19 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         "zenoh.low_latency": getattr(args, "low_latency", None),
         "log_level": getattr(args, "log_level", None),
     }
-    for item in getattr(args, "set", None) or []:
+    out.update(set_items(getattr(args, "set", None) or []))
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def set_items(items: Iterable[str]) -> dict[str, str]:
+    """``--set PATH=VALUE`` items as ``{path: text}`` (raises :class:`ConfigError`)."""
+    out: dict[str, str] = {}
+    for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
             raise ConfigError("", f"--set expects PATH=VALUE, got {item!r}")
         out[key.strip()] = value
-    return {k: v for k, v in out.items() if v is not None}
+    return out
 
 
 def config_from_args(
