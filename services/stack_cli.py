@@ -21,8 +21,8 @@ def _cmd_up(args: argparse.Namespace) -> int:
         overrides["recorder.output"] = args.record
     parsed = {k: parse_override(v) for k, v in overrides.items()}
     stack = load_stack(args.stack or DEFAULT_STACK, overrides=parsed)
-    if args.record and "recorder" not in stack.configs:
-        raise ConfigError("recorder", "--record needs a recorder process in the stack")
+    if args.record and not any(p.command[:1] == ["record"] for p in stack.processes):
+        raise ConfigError("recorder.output", "--record needs a recorder process in the stack")
     env = {env_var_name(k): v for k, v in overrides.items()}
     if args.check:
         print(f"{stack.path}: valid; processes: {', '.join(p.name for p in stack.processes)}")

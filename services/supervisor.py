@@ -481,9 +481,10 @@ class Supervisor:
                 "exit_code": codes[row.name],
                 "log": str(row.proc.log_path),
             })
-        rec = getattr(self.stack.configs.get("recorder"), "recorder", None)
-        if rec is not None and "recorder" in codes:
-            summary.recording = rec.output
+        for spec in self.stack.processes:
+            rec = getattr(self.stack.configs[spec.name], "recorder", None)
+            if tuple(spec.command[:1]) == ("record",) and rec is not None and spec.name in codes:
+                summary.recording = rec.output
         if self.session is not None:
             with contextlib.suppress(Exception):
                 self.session.close()

@@ -887,26 +887,20 @@ def run_service(app: ServiceApp, *, session: Any | None = None, install_signals:
 
 
 def _close_bounded(svc: Service) -> None:
-    """Close the service; if Zenoh's teardown hangs past :data:`CLOSE_TIMEOUT_S` in a process
-    entry point, end the process (everything of the service's own is already flushed)."""
+    """Close the service; in a process's main thread, a Zenoh teardown that hangs for
+    :data:`CLOSE_TIMEOUT_S` ends the process (exit code 1) after dumping every thread's stack
+    to stderr. The watchdog is faulthandler's C thread: it needs no GIL, so it also fires when
+    the hang holds the GIL."""
+    import faulthandler
+
     if threading.current_thread() is not threading.main_thread():
         svc.close()
         return
-
-    def hung() -> None:
-        sys.stderr.write(f"{svc.name}: bus shutdown still blocked after {CLOSE_TIMEOUT_S} s; exiting\n")
-        sys.stderr.flush()
-        import os
-
-        os._exit(0)
-
-    timer = threading.Timer(CLOSE_TIMEOUT_S, hung)
-    timer.daemon = True
-    timer.start()
+    faulthandler.dump_traceback_later(CLOSE_TIMEOUT_S, exit=True)
     try:
         svc.close()
     finally:
-        timer.cancel()
+        faulthandler.cancel_dump_traceback_later()
 
 
 def stream_class_of(topic: Topic) -> StreamClass:
