@@ -53,6 +53,7 @@ STACK_TARGET_PCT = 70.0
 MISS_RATIO_TARGET = 2.0
 
 SCENARIOS: dict[str, tuple[str, ...]] = {
+    "platform": ("router", "null_arm", "probe"),
     "arm": ("router", "arm", "probe"),
     "stack": ("router", "arm", "probe", "camera", "tracker", "recorder"),
 }
@@ -98,9 +99,10 @@ def start_stack(services: tuple[str, ...], workdir: Path, *, fps: float = 30.0) 
         "camera": [*py, "services.cli", "camera", "synth", "--clock", "wall",
                    "--set", f"goal_tracker.synthetic.fps={fps}", *client],
         "tracker": [*py, "services.cli", "track", "--source", "topic", *client],
+        "null_arm": [*py, "benchmarks.stack", "--null-arm", *client],
         "recorder": [*py, "services.cli", "record", "-o", str(workdir / "stack.mcap"), *client],
     }
-    for name in ("router", "probe", "camera", "tracker", "recorder", "arm"):
+    for name in ("router", "probe", "camera", "tracker", "recorder", "arm", "null_arm"):
         if name not in services:
             continue
         log = open(workdir / f"{name}.log", "wb")  # noqa: SIM115 (closed with the process)
@@ -184,6 +186,56 @@ def _timer_main(seconds: float, out: Path) -> int:
     res["deadlines"] = int(seconds / 0.002)
     out.write_text(json.dumps(res))
     return 0
+
+
+def _null_arm_main(argv: list[str]) -> int:
+    """The platform reference for the arm: a service on the same skeleton that publishes one
+    fixed, pre-encoded ``ArmState`` (tick and stamps advanced in place) every 2 ms on the arm's
+    state key by the wall clock and receives the commands in a callback that only copies the
+    payload, like the arm (no simulation). Runs until SIGTERM."""
+    import zenoh
+
+    from services.arm.config import ArmConfig
+    from services.arm.sim import ArmSim
+    from services.bus.config import ServiceConfig, add_config_arguments, config_from_args
+    from services.bus.runtime import Service, ServiceApp, run_service
+    from services.robot.protocol import StateEncoder
+
+    ap = argparse.ArgumentParser()
+    add_config_arguments(ap)
+    cfg = config_from_args(ServiceConfig, ap.parse_args(argv))
+    section = ArmConfig().arm
+    robot = section.load_robot()
+    sim = ArmSim(robot, section)
+    encoder = StateEncoder(list(robot.joint_names), "base", section.dt_s)
+
+    class NullArm(ServiceApp):
+        name = "arm"
+
+        def setup(self, svc: Service) -> None:
+            self.pub = svc.publisher(svc.keys.arm_state)
+            sub = svc.session.declare_subscriber(
+                svc.keys.arm_command.key,
+                zenoh.handlers.Callback(lambda sample: sample.payload.to_bytes(), indirect=False),
+            )
+            svc.on_close(sub.undeclare)
+
+        def loop(self, svc: Service) -> None:
+            period = section.dt_ns
+            t0 = time.perf_counter_ns()
+            epoch = time.time_ns()
+            snap = sim.snapshot()
+            k = 0
+            while not svc.stop_event.is_set():
+                sched = t0 + k * period
+                remaining = sched - time.perf_counter_ns()
+                if remaining > 0:
+                    time.sleep(remaining * 1e-9)
+                self.pub.put_bytes(encoder.encode(snap))
+                k += 1
+                snap = type(snap)(k, epoch + k * period, snap.q, snap.dq, snap.ddq, snap.ee, False)
+
+    return run_service(NullArm(cfg))
 
 
 def verdicts(res: dict[str, Any]) -> dict[str, Any]:
@@ -281,9 +333,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=30.0, help="synthetic camera rate")
     ap.add_argument("--quick", action="store_true", help="8 s windows")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--only", choices=list(SCENARIOS), default=None,
+                    help="run one scenario and print its CPU (no report)")
     ap.add_argument("--timer", type=float, default=0.0, help=argparse.SUPPRESS)
     ap.add_argument("--timer-out", type=Path, default=None, help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
+    ap.add_argument("--null-arm", action="store_true", help=argparse.SUPPRESS)
+    args, rest = ap.parse_known_args(argv)
+    if args.null_arm:
+        return _null_arm_main(rest)
     if args.timer > 0:
         return _timer_main(args.timer, args.timer_out)
     seconds = 8.0 if args.quick else args.seconds
@@ -297,6 +354,13 @@ def main(argv: list[str] | None = None) -> int:
         "fps": args.fps,
         "scenarios": {},
     }
+    if args.only:
+        out = run_scenario(args.only, seconds, args.warmup, args.fps)
+        print(json.dumps({"cpu_pct": out["cpu_pct"], "total": out["services_cpu_pct"],
+                          "arm": {k: out["arm"].get(k) for k in ("published_per_s", "missed_ticks",
+                                                                  "late_commands")},
+                          "timer_over_2ms": out["timer"].get("over_2ms")}))
+        return 0
     for name in SCENARIOS:
         print(f"scenario {name} ...", flush=True)
         res["scenarios"][name] = run_scenario(name, seconds, args.warmup, args.fps)

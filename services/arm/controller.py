@@ -293,15 +293,29 @@ class IKController:
         fro2 = 2.0 * float((L * L).sum()) - float(d @ d)
         return L + L.T - np.diag(d), 1.0 / math.sqrt(fro2)
 
-    def prepare(self, q: np.ndarray, dq: np.ndarray) -> None:
+    def prepare(
+        self,
+        q: np.ndarray,
+        dq: np.ndarray,
+        *,
+        J: np.ndarray | None = None,
+        drift: np.ndarray | None = None,
+        twist: np.ndarray | None = None,
+        rotation: np.ndarray | None = None,
+    ) -> None:
         """Command-independent part for state ``(q, dq)``; ``robot.update(q, dq)`` first.
+
+        ``J`` (6, n), ``drift`` (6,) m/s², rad/s², ``twist`` (6,) m/s, rad/s and the EE
+        ``rotation`` (3, 3) of this state may be passed when already computed (they are read
+        from the robot model otherwise).
 
         The damping uses ``σ_min(J)² ≈ 1/‖(J Jᵀ)⁻¹‖_F``, a lower bound of the smallest
         eigenvalue of ``J Jᵀ`` (tight within √6), so damping starts at or slightly before
         ``σ_min = ε``: λ² = (1 − σ²/ε²) λ_max² below ε, else 0.
         """
         robot, g = self.robot, self.gains
-        J = robot.jacobian()
+        if J is None:
+            J = robot.jacobian()
         A = J @ J.T
         K, sig2 = self._damped_inverse(A)
         sigma = math.sqrt(sig2)
@@ -315,10 +329,10 @@ class IKController:
         p = g.nullspace_kp * (self.posture - q) - g.nullspace_kd * dq
         self._K = K
         self._Jt = J.T
-        self._b0 = -robot.drift() - J @ p
+        self._b0 = -(robot.drift() if drift is None else drift) - J @ p
         self._p = p
-        self._R = robot.ee_placement().rotation
-        self._omega = robot.ee_velocity()[3:]
+        self._R = robot.ee_placement().rotation if rotation is None else rotation
+        self._omega = (robot.ee_velocity() if twist is None else twist)[3:]
 
     def finish(
         self,
