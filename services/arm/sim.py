@@ -26,12 +26,12 @@ from pydantic import Field
 
 from services.arm.controller import (
     AccelBounds,
+    AccelBoundsKernel,
     ClampReport,
     ControllerGains,
     IKController,
     ValidationLimits,
     apply_accel_bounds,
-    joint_accel_bounds,
     validate_command,
 )
 from services.bus.config import ConfigError, Section
@@ -125,6 +125,7 @@ class ArmSim:
         self._bounds: AccelBounds | None = None
         #: (J (6, n), drift (6,), twist (6,), rotation (3, 3)) of the current state (_refresh).
         self._kin: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._bounds_kernel = AccelBoundsKernel(robot.limits, self.dt, cfg.brake_fraction)
         self.last_rejection = ""
         #: True once a held command expired (watchdog), until a fresh command is accepted.
         self.watchdog_tripped = False
@@ -183,9 +184,7 @@ class ArmSim:
         if self._bounds is None:
             J, drift, twist, rotation = self._kin
             self.controller.prepare(self.q, self.dq, J=J, drift=drift, twist=twist, rotation=rotation)
-            self._bounds = joint_accel_bounds(
-                self.q, self.dq, self.robot.limits, self.dt, self.config.brake_fraction
-            )
+            self._bounds = self._bounds_kernel(self.q, self.dq)
 
     # ------------------------------------------------------------------ commands
     def submit(self, cmd: Command) -> bool:
