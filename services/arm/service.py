@@ -19,12 +19,8 @@ Clock modes (the stack's ``clock``; ``docs/architecture.md``, *Time and the cont
   it (counted in ``lockstep_timeouts``) and ticks at wall-clock pace until commands return, so
   the watchdog brakes the arm promptly when the planner stops.
 
-Threads: in ``realtime`` a command is handled on Zenoh's receive thread, in the subscriber
-callback, and when it answers the published tick the step to the next tick, that state's
-encoding and the command-independent work for the step after it run there at once, so the loop
-thread wakes only once per tick, at the deadline, to publish (and to step without the command if
-it did not come in time). One lock serialises the simulation between the two threads. In
-``lockstep`` commands are queued as raw bytes and decoded/validated on the loop thread.
+Commands are received on Zenoh's thread, queued as raw bytes and decoded/validated on the loop
+thread, so the simulation is single-threaded.
 """
 
 from __future__ import annotations
@@ -168,10 +164,6 @@ class ArmService(ServiceApp):
         self._answered = -1  # highest tick for which an answer has been seen
         self._payload = b""  # the encoded current state (see _encode_current)
         self._payload_tick = -1
-        self._put_tick = -1  # tick of the last published state
-        #: Realtime: commands are handled (and the step run) in the subscriber callback.
-        self._direct = False
-        self._lock = threading.Lock()  # the simulation, between the loop and Zenoh's thread
         self._encoder = StateEncoder(list(self.robot.joint_names), config.arm.frame_id, self.dt_ns * 1e-9)
         self._tf_msg: Any = None
         self._tf_slot = -1
@@ -205,36 +197,12 @@ class ArmService(ServiceApp):
 
     # ------------------------------------------------------------------ zenoh threads
     def _on_sample(self, sample: Any) -> None:
-        """Zenoh receive thread: lockstep enqueues the raw command for the loop thread; realtime
-        handles it here and, if it answers the published tick, steps (:meth:`_on_command`)."""
-        item = (time.perf_counter_ns(), sample.payload.to_bytes(), str(sample.encoding))
-        if self._direct:
-            self._on_command(item)
-        else:
-            self._inbox.put(item)
+        # Zenoh receive thread: only enqueue (decoding happens on the loop thread).
+        self._inbox.put((time.perf_counter_ns(), sample.payload.to_bytes(), str(sample.encoding)))
 
     def _on_liveliness(self, name: str, alive: bool) -> None:
-        if alive:
-            return
-        item = (time.perf_counter_ns(), None, name)
-        if self._direct:
-            self._on_command(item)
-        else:
-            self._inbox.put(item)
-
-    def _on_command(self, item: tuple[Any, ...]) -> None:
-        """Realtime, on Zenoh's thread: handle one inbox item under the lock; a command answering
-        the published current tick runs the step to the next tick at once (:meth:`_advance`)."""
-        try:
-            with self._lock:
-                if not self._direct:
-                    self._inbox.put(item)  # the loop has ended (nothing reads it any more)
-                    return
-                tick = self._handle(item)
-                if tick >= self.sim.tick == self._put_tick:
-                    self._advance()
-        except Exception as exc:  # a Zenoh callback must not raise
-            self.svc.record_error("command handling failed", exc)
+        if not alive:
+            self._inbox.put((time.perf_counter_ns(), None, name))
 
     def _undeclare(self) -> None:
         with contextlib.suppress(Exception):
@@ -304,7 +272,6 @@ class ArmService(ServiceApp):
         slot = tick % _PUB_RING
         self._pub_ns[slot] = now
         self._pub_tick[slot] = tick
-        self._put_tick = tick
         self.stats.published_ticks += 1
         if self._tf_msg is not None and self._tf_pub is not None:
             self._tf_pub.put(self._tf_msg)
@@ -318,15 +285,6 @@ class ArmService(ServiceApp):
         now = self._put_current()
         self.sim.prepare()
         return now
-
-    def _advance(self) -> None:
-        """Step to the next tick, encode its state and do the command-independent work for the
-        step after it (the caller holds the lock in realtime)."""
-        sim = self.sim
-        sim.step()
-        self.stats.ticks += 1
-        self._encode_current()
-        sim.prepare()
 
     def _drain(self) -> None:
         while True:
@@ -352,6 +310,22 @@ class ArmService(ServiceApp):
         return self.svc.stop_event.is_set() or (0 < max_ticks <= self.sim.tick)
 
     # ------------------------------------------------------------------ loops
+    def _wait(self, until_ns: int, tick: int) -> bool:
+        """Handle incoming commands until ``until_ns`` (perf_counter ns) or until one answers
+        ``tick`` (``tick < 0``: never stop early). Returns True if ``tick`` was answered."""
+        get = self._inbox.get
+        clock = time.perf_counter_ns
+        while True:
+            remaining = until_ns - clock()
+            if remaining <= 0:
+                return False
+            try:
+                item = get(timeout=remaining * 1e-9)
+            except queue.Empty:
+                return False
+            if self._handle(item) >= tick >= 0:
+                return True
+
     def run_realtime(self) -> None:
         """Realtime loop: state k is published at ``t0 + k·dt`` by the wall clock, stamped
         ``epoch0 + k·dt`` (``epoch0`` = UNIX time at ``t0``).
@@ -369,51 +343,36 @@ class ArmService(ServiceApp):
         """
         sim, stats, period = self.sim, self.stats, self.dt_ns
         clock = time.perf_counter_ns
-        sleep = time.sleep
-        lock = self._lock
-        with lock:
-            t0 = clock()
-            sim.set_time_origin(time.time_ns())
-            anchor_tick = sim.tick
+        t0 = clock()
+        sim.set_time_origin(time.time_ns())
+        anchor_tick = sim.tick
+        self._encode_current()
+        sim.prepare()
+        while True:
+            sched = t0 + (sim.tick - anchor_tick) * period
+            behind = (clock() - sched) // period
+            if behind > 0:
+                while behind > 0:  # catching up takes time too: until the current tick is due
+                    t0, anchor_tick = self._catch_up(behind, t0, anchor_tick)
+                    sched = t0 + (sim.tick - anchor_tick) * period
+                    behind = (clock() - sched) // period
+            elif self._degraded_since and clock() - self._last_miss_ns > DEGRADED_HOLD_NS:
+                self._degraded_since = 0
+                self.svc.set_degraded(None)
+                self.svc.log.info("realtime recovered: no missed tick for %.1f s", DEGRADED_HOLD_S)
+            self._wait(sched, -1)  # stepped early: hold the state until its time
+            late = self._put_current() - sched
+            stats.add_jitter(late)
+            if late > period:
+                stats.missed_ticks += 1
+            if self._done():
+                break
+            self._wait(sched + period, sim.tick)
+            self._drain()
+            sim.step()
+            stats.ticks += 1
             self._encode_current()
             sim.prepare()
-            self._drain()  # commands queued before the loop started
-            self._direct = True
-        try:
-            while True:
-                sched = t0 + (sim.tick - anchor_tick) * period
-                behind = (clock() - sched) // period
-                if behind > 0:
-                    with lock:
-                        while behind > 0:  # catching up takes time too: until the tick is due
-                            t0, anchor_tick = self._catch_up(behind, t0, anchor_tick)
-                            sched = t0 + (sim.tick - anchor_tick) * period
-                            behind = (clock() - sched) // period
-                elif self._degraded_since and clock() - self._last_miss_ns > DEGRADED_HOLD_NS:
-                    self._degraded_since = 0
-                    self.svc.set_degraded(None)
-                    self.svc.log.info("realtime recovered: no missed tick for %.1f s", DEGRADED_HOLD_S)
-                remaining = sched - clock()
-                if remaining > 0:
-                    sleep(remaining * 1e-9)  # stepped early: hold the state until its time
-                with lock:
-                    late = self._put_current() - sched
-                    tick = sim.tick
-                stats.add_jitter(late)
-                if late > period:
-                    stats.missed_ticks += 1
-                if self._done():
-                    break
-                # The command answering this tick steps the arm on Zenoh's thread meanwhile.
-                remaining = sched + period - clock()
-                if remaining > 0:
-                    sleep(remaining * 1e-9)
-                with lock:
-                    if sim.tick == tick:  # no answer in time: step with the held command
-                        self._advance()
-        finally:
-            with lock:
-                self._direct = False
 
     def _catch_up(self, behind: int, t0: int, anchor_tick: int) -> tuple[int, int]:
         """The current tick's schedule passed ``behind`` whole periods ago: step through those
