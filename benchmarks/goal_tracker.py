@@ -34,7 +34,6 @@ import os
 import platform
 import sys
 import time
-from dataclasses import replace
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -58,7 +57,7 @@ TARGET_P50_MS = 35.0
 def _section(full_frame: bool) -> GoalTrackerSection:
     sec = load_config(TrackerConfig, env={}).goal_tracker
     if full_frame:
-        sec.detector = replace(sec.detector, detect_width=640, full_every=1)
+        sec.detector = sec.detector.model_copy(update={"detect_width": 640, "full_every": 1})
     return sec
 
 
@@ -68,7 +67,7 @@ def run_pipeline(
     """Process ``frames`` once with a fresh tracker; per-frame latencies (s) and goals."""
     tracker = build_tracker(sec)
     if full_frame:
-        tracker.pipeline.params = replace(tracker.pipeline.params, max_refine=0)
+        tracker.pipeline.params = tracker.pipeline.params.model_copy(update={"max_refine": 0})
     lat = np.empty(len(frames))
     positions = np.full((len(frames), 3), np.nan)
     t_all = time.perf_counter()

@@ -5,6 +5,10 @@ Run ``python -m benchmarks.stack`` (``--seconds 20`` per scenario, ``--quick`` f
 
 Scenarios (every service a Zenoh client of one router on 127.0.0.1, multicast off):
 
+p. **platform**: router, a *null arm* (:func:`_null_arm_main`: the arm's bus traffic — a
+   pre-encoded ``ArmState`` every 2 ms by the wall clock, the commands received in a callback —
+   without the simulation) and the probe: what the 500 Hz loop costs on this machine before any
+   arm work, the reference the arm's figures are judged against as a ratio;
 a. **arm**: router, ``psm arm`` (realtime, 500 Hz) and the trivial controller
    ``services.arm.probe`` answering every state;
 b. **stack**: router, arm, probe, ``psm camera synth`` (30 fps, wall clock), ``psm track
@@ -53,6 +57,7 @@ STACK_TARGET_PCT = 70.0
 MISS_RATIO_TARGET = 2.0
 
 SCENARIOS: dict[str, tuple[str, ...]] = {
+    "platform": ("router", "null_arm", "probe"),
     "arm": ("router", "arm", "probe"),
     "stack": ("router", "arm", "probe", "camera", "tracker", "recorder"),
 }
@@ -98,9 +103,10 @@ def start_stack(services: tuple[str, ...], workdir: Path, *, fps: float = 30.0) 
         "camera": [*py, "services.cli", "camera", "synth", "--clock", "wall",
                    "--set", f"goal_tracker.synthetic.fps={fps}", *client],
         "tracker": [*py, "services.cli", "track", "--source", "topic", *client],
+        "null_arm": [*py, "benchmarks.stack", "--null-arm", *client],
         "recorder": [*py, "services.cli", "record", "-o", str(workdir / "stack.mcap"), *client],
     }
-    for name in ("router", "probe", "camera", "tracker", "recorder", "arm"):
+    for name in ("router", "probe", "camera", "tracker", "recorder", "arm", "null_arm"):
         if name not in services:
             continue
         log = open(workdir / f"{name}.log", "wb")  # noqa: SIM115 (closed with the process)
@@ -186,10 +192,62 @@ def _timer_main(seconds: float, out: Path) -> int:
     return 0
 
 
+def _null_arm_main(argv: list[str]) -> int:
+    """The platform reference for the arm: a service on the same skeleton that publishes one
+    fixed, pre-encoded ``ArmState`` (tick and stamps advanced in place) every 2 ms on the arm's
+    state key by the wall clock and receives the commands in a callback that only copies the
+    payload, like the arm (no simulation). Runs until SIGTERM."""
+    import zenoh
+
+    from services.arm.config import ArmConfig
+    from services.arm.sim import ArmSim
+    from services.bus.config import ServiceConfig, add_config_arguments, config_from_args
+    from services.bus.runtime import Service, ServiceApp, run_service
+    from services.robot.protocol import StateEncoder
+
+    ap = argparse.ArgumentParser()
+    add_config_arguments(ap)
+    cfg = config_from_args(ServiceConfig, ap.parse_args(argv))
+    section = ArmConfig().arm
+    robot = section.load_robot()
+    sim = ArmSim(robot, section)
+    encoder = StateEncoder(list(robot.joint_names), "base", section.dt_s)
+
+    class NullArm(ServiceApp):
+        name = "arm"
+
+        def setup(self, svc: Service) -> None:
+            self.pub = svc.publisher(svc.keys.arm_state)
+            sub = svc.session.declare_subscriber(
+                svc.keys.arm_command.key,
+                zenoh.handlers.Callback(lambda sample: sample.payload.to_bytes(), indirect=False),
+            )
+            svc.on_close(sub.undeclare)
+
+        def loop(self, svc: Service) -> None:
+            period = section.dt_ns
+            t0 = time.perf_counter_ns()
+            epoch = time.time_ns()
+            snap = sim.snapshot()
+            k = 0
+            while not svc.stop_event.is_set():
+                sched = t0 + k * period
+                remaining = sched - time.perf_counter_ns()
+                if remaining > 0:
+                    time.sleep(remaining * 1e-9)
+                self.pub.put_bytes(encoder.encode(snap))
+                k += 1
+                snap = type(snap)(k, epoch + k * period, snap.q, snap.dq, snap.ddq, snap.ee, False)
+
+    return run_service(NullArm(cfg))
+
+
 def verdicts(res: dict[str, Any]) -> dict[str, Any]:
     """The three targets, each with the figures it is judged on."""
     a, s = res["scenarios"]["arm"], res["scenarios"]["stack"]
+    plat = res["scenarios"].get("platform", {"cpu_pct": {}, "services_cpu_pct": float("nan")})
     arm_pct = a["cpu_pct"].get("arm", float("nan"))
+    null_pct = plat["cpu_pct"].get("null_arm", float("nan"))
     stack_pct = s["services_cpu_pct"]
     missed = s["arm"].get("missed_ticks") or 0
     ticks = (s["arm"].get("published_ticks") or 0) + (s["arm"].get("skipped_ticks") or 0)
@@ -202,8 +260,10 @@ def verdicts(res: dict[str, Any]) -> dict[str, Any]:
     return {
         "arm_cpu": {"value_pct": arm_pct, "target_pct": ARM_TARGET_PCT,
                     "bare_timer_pct": a["cpu_pct"].get("bare timer"),
+                    "null_arm_pct": null_pct, "ratio_to_null_arm": arm_pct / null_pct,
                     "ok": arm_pct <= ARM_TARGET_PCT},
         "stack_cpu": {"value_pct": stack_pct, "target_pct": STACK_TARGET_PCT,
+                      "platform_loop_pct": plat["services_cpu_pct"],
                       "ok": stack_pct <= STACK_TARGET_PCT},
         "missed_ticks": {"arm_missed": missed, "arm_ticks": ticks, "timer_missed": ref_missed,
                          "timer_deadlines": ref_n, "ratio": ratio, "target_ratio": MISS_RATIO_TARGET,
@@ -217,7 +277,9 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
     (out / "stack.json").write_text(json.dumps(res, indent=2, default=str))
     v = res["verdicts"]
     sc = res["scenarios"]
-    names = ["router", "arm", "probe", "camera", "tracker", "recorder"]
+    names = ["router", "null_arm", "arm", "probe", "camera", "tracker", "recorder"]
+    cols = [k for k in ("platform", "arm", "stack") if k in sc]
+    heads = {"platform": "(p) platform", "arm": "(a) arm + probe", "stack": "(b) whole stack"}
     lines = [
         "# Stack benchmark: CPU per process and the arm's realtime ticks",
         "",
@@ -225,14 +287,14 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
         f"after {res['warmup_s']} s warm-up · `python -m benchmarks.stack` (method: module "
         "docstring). CPU = utime + stime from `/proc/<pid>/stat` over the window, % of one core.",
         "",
-        "| process | (a) arm + probe | (b) whole stack |",
-        "|---|---:|---:|",
+        "| process | " + " | ".join(heads[k] for k in cols) + " |",
+        "|---|" + "---:|" * len(cols),
     ]
     for n in [*names, "bare timer"]:
-        cells = [f"{sc[k]['cpu_pct'][n]:.1f}" if n in sc[k]["cpu_pct"] else "–" for k in ("arm", "stack")]
-        lines.append(f"| {n} | {cells[0]} | {cells[1]} |")
-    lines.append(f"| **services total** | {sc['arm']['services_cpu_pct']:.1f} | "
-                 f"{sc['stack']['services_cpu_pct']:.1f} |")
+        cells = [f"{sc[k]['cpu_pct'][n]:.1f}" if n in sc[k]["cpu_pct"] else "–" for k in cols]
+        lines.append(f"| {n} | " + " | ".join(cells) + " |")
+    totals = " | ".join(f"{sc[k]['services_cpu_pct']:.1f}" for k in cols)
+    lines.append(f"| **services total** | {totals} |")
     lines += ["", "| arm loop | (a) | (b) |", "|---|---:|---:|"]
     for key in ("published_per_s", "missed_ticks", "skipped_ticks", "reanchors", "late_commands"):
         cells = []
@@ -257,16 +319,18 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
         "| target | measured | verdict |",
         "|---|---|---|",
         f"| arm (500 Hz, answered by the probe) ≤ {ARM_TARGET_PCT:.0f} % of one core | "
-        f"{v['arm_cpu']['value_pct']:.1f} % (bare 2 ms timer loop in the same run: "
+        f"{v['arm_cpu']['value_pct']:.1f} % (same run: null arm {v['arm_cpu']['null_arm_pct']} % "
+        f"→ ratio {v['arm_cpu']['ratio_to_null_arm']:.2f}; bare 2 ms timer loop "
         f"{v['arm_cpu']['bare_timer_pct']} %) | {ok(v['arm_cpu']['ok'])} |",
         f"| whole stack ≤ {STACK_TARGET_PCT:.0f} % of one core | "
-        f"{v['stack_cpu']['value_pct']:.1f} % | {ok(v['stack_cpu']['ok'])} |",
+        f"{v['stack_cpu']['value_pct']:.1f} % (same run: router + null arm + probe "
+        f"{v['stack_cpu']['platform_loop_pct']} %) | {ok(v['stack_cpu']['ok'])} |",
         f"| arm missed ticks ≤ {MISS_RATIO_TARGET:.0f}× bare timer misses (stack running) | "
         f"arm {m['arm_missed']} of {m['arm_ticks']} ticks, timer {m['timer_missed']} of "
         f"{m['timer_deadlines']} deadlines: ratio of rates {m['ratio']:.2f} | {ok(m['ok'])} |",
         "",
-        f"Load average (1 min) before/after the windows: arm {sc['arm']['loadavg']}, "
-        f"stack {sc['stack']['loadavg']}.",
+        "Load average (1 min) before/after the windows: "
+        + ", ".join(f"{k} {sc[k]['loadavg']}" for k in cols) + ".",
     ]
     for k in ("arm", "stack"):
         sc[k].pop("_timer_txt", None)
@@ -281,9 +345,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fps", type=float, default=30.0, help="synthetic camera rate")
     ap.add_argument("--quick", action="store_true", help="8 s windows")
     ap.add_argument("--out", type=Path, default=RESULTS)
+    ap.add_argument("--only", choices=list(SCENARIOS), default=None,
+                    help="run one scenario and print its CPU (no report)")
     ap.add_argument("--timer", type=float, default=0.0, help=argparse.SUPPRESS)
     ap.add_argument("--timer-out", type=Path, default=None, help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
+    ap.add_argument("--null-arm", action="store_true", help=argparse.SUPPRESS)
+    args, rest = ap.parse_known_args(argv)
+    if args.null_arm:
+        return _null_arm_main(rest)
     if args.timer > 0:
         return _timer_main(args.timer, args.timer_out)
     seconds = 8.0 if args.quick else args.seconds
@@ -297,6 +366,13 @@ def main(argv: list[str] | None = None) -> int:
         "fps": args.fps,
         "scenarios": {},
     }
+    if args.only:
+        out = run_scenario(args.only, seconds, args.warmup, args.fps)
+        print(json.dumps({"cpu_pct": out["cpu_pct"], "total": out["services_cpu_pct"],
+                          "arm": {k: out["arm"].get(k) for k in ("published_per_s", "missed_ticks",
+                                                                  "late_commands")},
+                          "timer_over_2ms": out["timer"].get("over_2ms")}))
+        return 0
     for name in SCENARIOS:
         print(f"scenario {name} ...", flush=True)
         res["scenarios"][name] = run_scenario(name, seconds, args.warmup, args.fps)

@@ -157,6 +157,55 @@ class AccelBounds:
     hi_is_velocity: np.ndarray
 
 
+class AccelBoundsKernel:
+    """:func:`joint_accel_bounds` for fixed ``limits``, ``dt`` and ``brake_fraction``: the
+    constants are computed once and the intermediates live in preallocated ``(2, n)`` buffers
+    (the arm's per-tick path). Same operations in the same order, so the results are identical.
+    Not thread-safe."""
+
+    def __init__(self, limits: JointLimits, dt: float, brake_fraction: float = 0.5) -> None:
+        n = limits.acceleration.shape[0]
+        self.limits, self.dt = limits, dt
+        self._amax = limits.acceleration
+        self._neg_amax = -limits.acceleration
+        self._vmax = limits.velocity
+        self._brake = brake_fraction * limits.acceleration
+        self._c0 = 2.25 * dt * dt
+        self._c1 = 2.0 / self._brake
+        self._c2 = 1.5 * dt
+        self._sign = np.array([[1.0], [-1.0]])
+        self._D = np.empty((2, n))
+        self._S = np.empty((2, n))
+        self._V = np.empty((2, n))
+
+    def __call__(self, q: np.ndarray, dq: np.ndarray) -> AccelBounds:
+        """The bounds for state ``q`` (n,) rad, ``dq`` (n,) rad/s (see :func:`joint_accel_bounds`)."""
+        lim, dt = self.limits, self.dt
+        D, S, V = self._D, self._S, self._V
+        # Row 0: distance to the upper limit, row 1: distance to the lower limit (rad).
+        np.subtract(lim.upper, q, out=D[0])
+        np.subtract(q, lim.lower, out=D[1])
+        np.maximum(D, 0.0, out=D)
+        np.multiply(D, self._c1, out=S)
+        S += self._c0
+        np.sqrt(S, out=S)
+        S -= self._c2
+        S *= self._brake  # the stop speeds (rad/s)
+        np.minimum(self._vmax, S, out=V)
+        V *= self._sign  # row 1 becomes the lowest allowed next velocity
+        H = V - dq
+        H /= dt
+        hi = np.minimum(self._amax, H[0])
+        lo = np.maximum(self._neg_amax, H[1])
+        bad = lo > hi
+        if bad.any():
+            fix = np.clip((np.clip(dq, V[1], V[0]) - dq) / dt, self._neg_amax, self._amax)
+            lo = np.where(bad, fix, lo)
+            hi = np.where(bad, fix, hi)
+        vel = S >= self._vmax
+        return AccelBounds(lo, hi, vel[1], vel[0])
+
+
 def joint_accel_bounds(
     q: np.ndarray,
     dq: np.ndarray,
@@ -170,30 +219,14 @@ def joint_accel_bounds(
     from which the joint can still stop (at ``brake_fraction`` of its acceleration limit) before
     its position limits; ``|ddq|`` must stay within the acceleration limit. If a joint is
     already outside that viable set, the interval collapses to the hardest allowed deceleration
-    toward it. (Both sides are computed at once on ``(2, n)`` arrays: few numpy calls.)
+    toward it. (Both sides are computed at once on ``(2, n)`` arrays; :class:`AccelBoundsKernel` keeps
+    the constants and buffers for repeated calls.)
 
     Discrete braking from speed v at deceleration a covers at most v·dt + v²/(2a) + v·dt/2
     with the semi-implicit Euler integrator; the stop speed for a distance d solves that for v:
     ``v = a (sqrt(2.25 dt² + 2 d / a) − 1.5 dt)``.
     """
-    amax = limits.acceleration
-    vmax = limits.velocity
-    brake = brake_fraction * amax
-    # Row 0: distance to the upper limit, row 1: distance to the lower limit (rad).
-    D = np.maximum(np.stack((limits.upper - q, q - limits.lower)), 0.0)
-    S = brake * (np.sqrt(2.25 * dt * dt + D * (2.0 / brake)) - 1.5 * dt)
-    V = np.minimum(vmax, S)
-    V[1] *= -1.0  # row 1 becomes the lowest allowed next velocity
-    H = (V - dq) / dt
-    hi = np.minimum(amax, H[0])
-    lo = np.maximum(-amax, H[1])
-    bad = lo > hi
-    if bad.any():
-        fix = np.clip((np.clip(dq, V[1], V[0]) - dq) / dt, -amax, amax)
-        lo = np.where(bad, fix, lo)
-        hi = np.where(bad, fix, hi)
-    vel = S >= vmax
-    return AccelBounds(lo, hi, vel[1], vel[0])
+    return AccelBoundsKernel(limits, dt, brake_fraction)(q, dq)
 
 
 def apply_accel_bounds(
@@ -293,15 +326,29 @@ class IKController:
         fro2 = 2.0 * float((L * L).sum()) - float(d @ d)
         return L + L.T - np.diag(d), 1.0 / math.sqrt(fro2)
 
-    def prepare(self, q: np.ndarray, dq: np.ndarray) -> None:
+    def prepare(
+        self,
+        q: np.ndarray,
+        dq: np.ndarray,
+        *,
+        J: np.ndarray | None = None,
+        drift: np.ndarray | None = None,
+        twist: np.ndarray | None = None,
+        rotation: np.ndarray | None = None,
+    ) -> None:
         """Command-independent part for state ``(q, dq)``; ``robot.update(q, dq)`` first.
+
+        ``J`` (6, n), ``drift`` (6,) m/s², rad/s², ``twist`` (6,) m/s, rad/s and the EE
+        ``rotation`` (3, 3) of this state may be passed when already computed (they are read
+        from the robot model otherwise).
 
         The damping uses ``σ_min(J)² ≈ 1/‖(J Jᵀ)⁻¹‖_F``, a lower bound of the smallest
         eigenvalue of ``J Jᵀ`` (tight within √6), so damping starts at or slightly before
         ``σ_min = ε``: λ² = (1 − σ²/ε²) λ_max² below ε, else 0.
         """
         robot, g = self.robot, self.gains
-        J = robot.jacobian()
+        if J is None:
+            J = robot.jacobian()
         A = J @ J.T
         K, sig2 = self._damped_inverse(A)
         sigma = math.sqrt(sig2)
@@ -315,10 +362,10 @@ class IKController:
         p = g.nullspace_kp * (self.posture - q) - g.nullspace_kd * dq
         self._K = K
         self._Jt = J.T
-        self._b0 = -robot.drift() - J @ p
+        self._b0 = -(robot.drift() if drift is None else drift) - J @ p
         self._p = p
-        self._R = robot.ee_placement().rotation
-        self._omega = robot.ee_velocity()[3:]
+        self._R = robot.ee_placement().rotation if rotation is None else rotation
+        self._omega = (robot.ee_velocity() if twist is None else twist)[3:]
 
     def finish(
         self,
@@ -360,6 +407,7 @@ class IKController:
 
 __all__ = [
     "AccelBounds",
+    "AccelBoundsKernel",
     "ClampReport",
     "ControllerGains",
     "IKController",

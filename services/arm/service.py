@@ -44,9 +44,9 @@ from services.bus.messages import ArmCommand, MessageDecodeError, decode
 from services.bus.runtime import Service, ServiceApp, run_service
 from services.robot.protocol import (
     CommandRejectedError,
+    StateEncoder,
     command_from_message,
     frame_transforms,
-    state_message,
 )
 from services.threads import limit_blas_threads
 
@@ -164,6 +164,7 @@ class ArmService(ServiceApp):
         self._answered = -1  # highest tick for which an answer has been seen
         self._payload = b""  # the encoded current state (see _encode_current)
         self._payload_tick = -1
+        self._encoder = StateEncoder(list(self.robot.joint_names), config.arm.frame_id, self.dt_ns * 1e-9)
         self._tf_msg: Any = None
         self._tf_slot = -1
         self._degraded_since = 0  # perf_counter ns of the first miss of the current episode
@@ -249,15 +250,9 @@ class ArmService(ServiceApp):
         with the same sim time) for :meth:`_put_current`."""
         sim = self.sim
         snap = sim.snapshot()
-        msg = state_message(
-            snap,
-            self._joint_names,
-            self.config.arm.frame_id,
-            self.dt_ns * 1e-9,
-            watchdog_tripped=sim.watchdog_tripped,
-            rejected_commands=sim.counters["rejected"],
+        self._payload = self._encoder.encode(
+            snap, watchdog_tripped=sim.watchdog_tripped, rejected_commands=sim.counters["rejected"]
         )
-        self._payload = msg.SerializeToString()
         self._payload_tick = snap.tick
         self._tf_msg = None
         if self._tf_pub is not None:

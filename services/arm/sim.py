@@ -26,12 +26,12 @@ from pydantic import Field
 
 from services.arm.controller import (
     AccelBounds,
+    AccelBoundsKernel,
     ClampReport,
     ControllerGains,
     IKController,
     ValidationLimits,
     apply_accel_bounds,
-    joint_accel_bounds,
     validate_command,
 )
 from services.bus.config import ConfigError, Section
@@ -123,6 +123,9 @@ class ArmSim:
         self._ref_quat: np.ndarray | None = None
         self._snapshot: ArmSnapshot | None = None
         self._bounds: AccelBounds | None = None
+        #: (J (6, n), drift (6,), twist (6,), rotation (3, 3)) of the current state (_refresh).
+        self._kin: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._bounds_kernel = AccelBoundsKernel(robot.limits, self.dt, cfg.brake_fraction)
         self.last_rejection = ""
         #: True once a held command expired (watchdog), until a fresh command is accepted.
         self.watchdog_tripped = False
@@ -148,17 +151,22 @@ class ArmSim:
     def _refresh(self) -> None:
         robot = self.robot
         robot.update(self.q, self.dq)
-        acc = robot.jacobian() @ self.ddq + robot.drift()
+        # The Jacobian, drift and twist of this state, computed once: the snapshot and the
+        # controller's prepare() both use them.
+        J = robot.jacobian()
+        drift = robot.drift()
         twist = robot.ee_velocity()
+        acc = J @ self.ddq + drift
         M = robot.ee_placement()
         xyzquat = pin.SE3ToXYZQUAT(M)
         quat = xyzquat[3:]
         if quat[3] < 0:
             quat = -quat
+        rotation = M.rotation.copy()  # a view into the model data otherwise
         ee = EEState(
             position=xyzquat[:3],
             quat_xyzw=quat,
-            rotation=M.rotation.copy(),
+            rotation=rotation,
             linear_velocity=twist[:3],
             angular_velocity=twist[3:],
             linear_acceleration=acc[:3],
@@ -166,6 +174,7 @@ class ArmSim:
         )
         # q, dq, ddq are replaced (never mutated in place) by step(), so no copies are needed.
         self._snapshot = ArmSnapshot(self.tick, self.time_ns, self.q, self.dq, self.ddq, ee, self.braking)
+        self._kin = (J, drift, twist, rotation)
         self._bounds = None
 
     def prepare(self) -> None:
@@ -173,10 +182,9 @@ class ArmSim:
         posture term, limit interval). Optional: :meth:`step` calls it if needed; the service
         calls it while it waits for the command, to shorten the state→step critical path."""
         if self._bounds is None:
-            self.controller.prepare(self.q, self.dq)
-            self._bounds = joint_accel_bounds(
-                self.q, self.dq, self.robot.limits, self.dt, self.config.brake_fraction
-            )
+            J, drift, twist, rotation = self._kin
+            self.controller.prepare(self.q, self.dq, J=J, drift=drift, twist=twist, rotation=rotation)
+            self._bounds = self._bounds_kernel(self.q, self.dq)
 
     # ------------------------------------------------------------------ commands
     def submit(self, cmd: Command) -> bool:

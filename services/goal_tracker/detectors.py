@@ -162,7 +162,7 @@ class PipelineParams(Section):
     min_face_px: int = Field(
         40, ge=8, description="smallest face width searched by a full detection [px]"
     )
-    roi_margin: float = Field(2.2, ge=1.2, description="ROI side = predicted face size x this")
+    roi_margin: float = Field(1.8, ge=1.2, description="ROI side = predicted face size x this")
     roi_max_face_px: int = Field(
         128, ge=48,
         description="faces wider than this are searched in an ROI at 1/2, 1/4... resolution [px]",

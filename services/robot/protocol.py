@@ -180,6 +180,41 @@ def state_message(
     return msg
 
 
+class StateEncoder:
+    """Serialises states like :func:`state_message` into one cached :class:`ArmState` updated
+    in place (the per-state constant fields are set once): the arm's per-tick encoder. The
+    bytes equal ``state_message(...).SerializeToString()``. Not thread-safe."""
+
+    def __init__(self, joint_names: Sequence[str], frame_id: str, dt_s: float) -> None:
+        self._msg = msg = ArmState(joint_names=joint_names, frame_id=frame_id, dt_s=dt_s)
+        self._fields = (
+            msg.ee_position, msg.ee_linear_velocity, msg.ee_angular_velocity,
+            msg.ee_linear_acceleration, msg.ee_angular_acceleration,
+        )
+
+    def encode(self, snap: StateLike, *, watchdog_tripped: bool = False, rejected_commands: int = 0) -> bytes:
+        """The serialised :class:`ArmState` of ``snap`` (``stamp_ns`` = sim time)."""
+        msg, ee = self._msg, snap.ee
+        msg.stamp_ns = msg.sim_time_ns = snap.time_ns
+        msg.tick = snap.tick
+        msg.q[:] = snap.q.tolist()
+        msg.dq[:] = snap.dq.tolist()
+        msg.ddq[:] = snap.ddq.tolist()
+        msg.braking = snap.braking
+        msg.watchdog_tripped = watchdog_tripped
+        msg.rejected_commands = min(rejected_commands, 2**32 - 1)
+        o = msg.ee_orientation
+        o.x, o.y, o.z, o.w = ee.quat_xyzw.tolist()
+        for v, a in zip(
+            self._fields,
+            (ee.position, ee.linear_velocity, ee.angular_velocity, ee.linear_acceleration,
+             ee.angular_acceleration),
+            strict=True,
+        ):
+            v.x, v.y, v.z = a.tolist()
+        return msg.SerializeToString()
+
+
 def state_from_message(msg: ArmState) -> ArmStateData:
     """Decode an :class:`ArmState` into numpy arrays (:class:`ArmStateData`); ``ee.rotation``
     is computed from the quaternion, which is returned as sent.
@@ -327,6 +362,7 @@ __all__ = [
     "CommandMode",
     "CommandRejectedError",
     "EEState",
+    "StateEncoder",
     "StateLike",
     "cartesian_command",
     "command_from_message",
