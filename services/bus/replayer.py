@@ -43,6 +43,9 @@ from services.bus.runtime import Service, ServiceApp, run_service
 
 __all__ = ["ReplayRefusedError", "ReplayerConfig", "ReplayerSection", "remap_key", "run_replayer"]
 
+#: After the first subscriber matches, how long the other keys' routes are given to complete [s].
+SETTLE_S = 0.3
+
 
 class ReplayRefusedError(BusError):
     """The replay would command a live service (an arm alive on the target prefix)."""
@@ -291,7 +294,12 @@ def _replay(
     if rp.wait_subscribers_s > 0 and pubs:
         deadline = time.monotonic() + rp.wait_subscribers_s
         while time.monotonic() < deadline and not svc.stop_event.is_set():
+            if all(getattr(p, "matching_status", False) for p in pubs.values()):
+                break
             if any(getattr(p, "matching_status", False) for p in pubs.values()):
+                # A subscriber is there; the routes of the other keys through a router complete
+                # a little after the first match: let them settle (bounded by the wait).
+                svc.stop_event.wait(min(SETTLE_S, max(0.0, deadline - time.monotonic())))
                 break
             time.sleep(0.01)
     svc.log.info("replaying", extra={"files": rp.files, "keys": len(pubs),

@@ -130,7 +130,9 @@ def test_degraded_status_is_set_and_cleared() -> None:
 def test_missed_ticks_make_the_arm_degraded_then_it_recovers(monkeypatch: pytest.MonkeyPatch) -> None:
     import services.arm.service as mod
 
-    monkeypatch.setattr(mod, "DEGRADED_HOLD_NS", 300_000_000)
+    # DEGRADED until 100 ms pass without a missed tick (a loaded machine misses ticks of its
+    # own now and then: the hold is short so that a quiet 100 ms comes well within the run).
+    monkeypatch.setattr(mod, "DEGRADED_HOLD_NS", 100_000_000)
     svc = _arm(dt_s=0.002, max_ticks=700)
     sim = svc.sim
     step = sim.step
@@ -139,7 +141,7 @@ def test_missed_ticks_make_the_arm_degraded_then_it_recovers(monkeypatch: pytest
     def slow_step() -> Any:
         if sim.tick == 100:
             time.sleep(0.05)
-        if sim.tick in (150, 690):
+        if sim.tick > 100:
             seen.append((sim.tick, svc.svc.status_message().state))
         return step()
 
@@ -147,9 +149,9 @@ def test_missed_ticks_make_the_arm_degraded_then_it_recovers(monkeypatch: pytest
     th = _run_in_thread(svc)
     th.join(30)
     assert not th.is_alive()
-    states = dict(seen)
-    assert states[150] == ServiceStatus.DEGRADED  # 100 ms after the miss
-    assert states[690] == ServiceStatus.RUNNING  # > 0.3 s without a miss
+    first_degraded = next(t for t, st in seen if st == ServiceStatus.DEGRADED)
+    assert first_degraded <= 130  # once the 25 ticks of the 50 ms stall are stepped through
+    assert any(st == ServiceStatus.RUNNING for t, st in seen if t > first_degraded)  # recovered
     assert svc.stats.skipped_ticks >= 20
 
 
