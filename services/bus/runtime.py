@@ -539,7 +539,8 @@ class Service:
         self.log = setup_logging(name, config.log_level, config.log_format)
         self.counters = Counters()
         self.stop_event = threading.Event()
-        self._stop_signal: int | None = None  # set by the SIGINT/SIGTERM handler
+        self._stop_signal: int | None = None  # set by the SIGINT/SIGTERM watcher
+        self._signal_pipe: tuple[int, int] | None = None
         self.state = ServiceStatus.STARTING
         self.last_error = ""
         self._degraded: str | None = None
@@ -586,22 +587,53 @@ class Service:
         self.close()
 
     def install_signal_handlers(self) -> None:
-        """SIGINT/SIGTERM set :attr:`stop_event` (main thread only; no-op elsewhere)."""
-        if threading.current_thread() is not threading.main_thread():
+        """SIGINT/SIGTERM stop the service (main thread only; no-op elsewhere).
+
+        The Python-level handler records nothing and takes no lock: it runs between two
+        bytecodes of the main thread, which may be inside the very lock an ``Event.set`` takes
+        (a second signal arriving while the first handler was in ``Event.set`` deadlocked a
+        process). Instead the interpreter's C-level handler writes the signal number to a
+        wake-up pipe (``signal.set_wakeup_fd``, async-signal-safe) and a watcher thread sets
+        :attr:`stop_event` from ordinary thread context. A second SIGINT (a user insisting)
+        interrupts the main thread; repeated SIGTERMs (a supervisor, the parent-death signal)
+        change nothing, so the shutdown that is running (e.g. finalising a recording) completes.
+        """
+        if threading.current_thread() is not threading.main_thread() or self._signal_pipe:
             return
+        import _thread
+        import os
+
+        r, w = os.pipe()
+        os.set_blocking(w, False)
+        self._signal_pipe = (r, w)
 
         def handler(signum: int, _frame: Any) -> None:
-            # Set the event first and do nothing that can fail or block: the handler runs between
-            # two bytecodes of the main thread, which may be writing to stderr itself (a log line
-            # written here would then raise "reentrant call" before the event was set, and the
-            # service would never stop). The shutdown is logged by close().
-            if self.stop_event.is_set():  # second signal: give up waiting
-                raise KeyboardInterrupt
-            self.stop_event.set()
-            self._stop_signal = signum
+            """The signal was written to the wake-up pipe; the watcher acts on it."""
+
+        def watch() -> None:
+            sigints = 0
+            while True:
+                try:
+                    data = os.read(r, 64)
+                except OSError:
+                    return
+                if not data:
+                    return
+                for signum in data:
+                    if signum not in (signal.SIGINT, signal.SIGTERM):
+                        continue
+                    if self._stop_signal is None:
+                        self._stop_signal = signum
+                        self.stop_event.set()
+                    if signum == signal.SIGINT:
+                        sigints += 1
+                        if sigints >= 2:
+                            _thread.interrupt_main()
 
         signal.signal(signal.SIGINT, handler)
         signal.signal(signal.SIGTERM, handler)
+        signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+        threading.Thread(target=watch, name="signals", daemon=True).start()
 
     def stop(self) -> None:
         """Ask :meth:`run` to return (thread-safe)."""
