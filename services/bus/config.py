@@ -81,6 +81,7 @@ __all__ = [
 ]
 
 T = TypeVar("T", bound="ServiceConfig")
+S = TypeVar("S", bound="Section")
 
 ENV_PREFIX = "PSM_"
 ENV_NESTED_DELIMITER = "__"
@@ -143,6 +144,11 @@ class Section(BaseModel):
     def check(self) -> None:
         """Cross-field checks of a section: raise :class:`ConfigError` with the field's name
         relative to the section (``ConfigError("upper_m", "must be > lower_m")``)."""
+
+    def project(self, cls: type[S]) -> S:
+        """This section's values of the fields of ``cls`` (a model this section extends), as a
+        ``cls``: the parameter object a section feeds (``detector.project(PipelineParams)``)."""
+        return cls(**{name: getattr(self, name) for name in cls.model_fields})
 
     @model_validator(mode="after")
     def _run_checks(self) -> Section:

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Literal
 from pydantic import Field
 
 from services.bus.config import ConfigError, Section, ServiceConfig, Vec3
-from services.goal_tracker.detectors import PipelineParams
+from services.goal_tracker.detectors import HaarParams, PipelineParams, YuNetParams
 from services.goal_tracker.kalman import KalmanParams
 
 if TYPE_CHECKING:
@@ -132,19 +132,16 @@ class FaceSection(Section):
     )
 
 
-class DetectorSection(PipelineParams):
-    """``[goal_tracker.detector]``: face detector and the speed knobs of the pipeline."""
+class DetectorSection(PipelineParams, HaarParams, YuNetParams):
+    """``[goal_tracker.detector]``: the face detector (its kind, model and settings) and the
+    speed knobs of the detection pipeline, each field the one of the model it configures."""
 
-    kind: Literal['haar', 'yunet'] = Field("haar", description="face detector")
+    kind: Literal["haar", "yunet"] = Field("haar", description="face detector")
     model_path: str = Field(
         "",
-        description="model file: Haar XML (empty = OpenCV's default frontal face) or YuNet ONNX (required "
-        "for yunet)",
+        description="model file: Haar XML (empty = OpenCV's default frontal face) or YuNet ONNX "
+        "(required for yunet)",
     )
-    scale_factor: float = Field(1.1, gt=1.0, le=2.0, description="Haar scale step of full detections")
-    fine_scale_factor: float = Field(1.1, gt=1.0, le=2.0, description="Haar scale step of ROI detections")
-    min_neighbors: int = Field(4, ge=0, description="Haar minNeighbors")
-    score_threshold: float = Field(0.7, gt=0.0, lt=1.0, description="YuNet score threshold")
 
     def check(self) -> None:
         """YuNet needs a model."""
@@ -286,21 +283,10 @@ def build_tracker(sec: GoalTrackerSection) -> GoalTracker:
     from services.goal_tracker.workspace import Workspace
 
     d = sec.detector
-    if d.kind == "haar":
-        detector = make_detector(
-            "haar",
-            d.model_path,
-            scale_factor=d.scale_factor,
-            fine_scale_factor=d.fine_scale_factor,
-            min_neighbors=d.min_neighbors,
-        )
-    else:
-        detector = make_detector("yunet", d.model_path, score_threshold=d.score_threshold)
-    pipeline = DetectionPipeline(
-        detector, PipelineParams(**d.model_dump(include=set(PipelineParams.model_fields)))
-    )
-    f = sec.filter
-    kalman = KalmanParams(**f.model_dump(include=set(KalmanParams.model_fields)))
+    params = d.project(HaarParams) if d.kind == "haar" else d.project(YuNetParams)
+    detector = make_detector(d.kind, d.model_path, params)
+    pipeline = DetectionPipeline(detector, d.project(PipelineParams))
+    kalman = sec.filter.project(KalmanParams)
     w = sec.workspace
     workspace = Workspace(
         tuple(w.lower_m),
@@ -309,7 +295,8 @@ def build_tracker(sec: GoalTrackerSection) -> GoalTracker:
         w.min_radius_m,
         w.max_radius_m if w.max_radius_m > 0 else math.inf,
     )
-    return GoalTracker(build_geometry(sec), pipeline, kalman, workspace, TargetSelector(min_hits=f.min_hits))
+    selector = TargetSelector(min_hits=sec.filter.min_hits)
+    return GoalTracker(build_geometry(sec), pipeline, kalman, workspace, selector)
 
 
 def build_synthetic_camera(sec: GoalTrackerSection) -> SyntheticCamera:

@@ -53,18 +53,32 @@ def _sigmoid(x: float) -> float:
     return 1.0 / (1.0 + math.exp(-x))
 
 
+class HaarParams(Section):
+    """Settings of :class:`HaarDetector` (part of ``[goal_tracker.detector]``)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    scale_factor: float = Field(1.1, gt=1.0, le=2.0, description="Haar scale step of full detections")
+    fine_scale_factor: float = Field(1.1, gt=1.0, le=2.0, description="Haar scale step of ROI detections")
+    min_neighbors: int = Field(4, ge=0, description="Haar minNeighbors")
+
+
+class YuNetParams(Section):
+    """Settings of :class:`YuNetDetector` (part of ``[goal_tracker.detector]``)."""
+
+    model_config = ConfigDict(frozen=True)
+
+    score_threshold: float = Field(0.7, gt=0.0, lt=1.0, description="YuNet score threshold")
+    nms_threshold: float = Field(0.3, gt=0.0, lt=1.0, description="YuNet non-maximum suppression IoU")
+
+
 class HaarDetector:
     """OpenCV Haar cascade. Confidence is the logistic of the cascade's last-stage weight."""
 
     name = "haar"
 
-    def __init__(
-        self,
-        model_path: str | None = None,
-        scale_factor: float = 1.1,
-        fine_scale_factor: float = 1.1,
-        min_neighbors: int = 4,
-    ) -> None:
+    def __init__(self, model_path: str | None = None, params: HaarParams | None = None) -> None:
+        params = params or HaarParams()
         path = model_path or os.path.join(cv2.data.haarcascades, HAAR_DEFAULT)
         if not os.path.isfile(path):
             raise FileNotFoundError(f"Haar cascade file not found: {path}")
@@ -75,11 +89,9 @@ class HaarDetector:
             loaded = False
         if not loaded or self._cascade.empty():
             raise ParameterError(f"Haar cascade file could not be loaded: {path}")
-        if not (scale_factor > 1 and fine_scale_factor > 1 and min_neighbors >= 0):
-            raise ParameterError("haar needs scale_factor > 1, fine_scale_factor > 1, min_neighbors >= 0")
-        self.scale_factor = scale_factor
-        self.fine_scale_factor = fine_scale_factor
-        self.min_neighbors = min_neighbors
+        self.scale_factor = params.scale_factor
+        self.fine_scale_factor = params.fine_scale_factor
+        self.min_neighbors = params.min_neighbors
 
     def detect(
         self, image: Image, min_size: int, max_size: int | None = None, fine: bool = False
@@ -110,13 +122,16 @@ class YuNetDetector:
 
     name = "yunet"
 
-    def __init__(self, model_path: str, score_threshold: float = 0.7, nms_threshold: float = 0.3):
+    def __init__(self, model_path: str, params: YuNetParams | None = None) -> None:
+        params = params or YuNetParams()
         if not model_path or not os.path.isfile(model_path):
             raise FileNotFoundError(
                 f"YuNet model file not found: {model_path!r} (set goal_tracker.detector.model_path "
                 "to a face_detection_yunet_*.onnx file, or use detector.kind = 'haar')"
             )
-        self._net = cv2.FaceDetectorYN.create(model_path, "", (320, 320), score_threshold, nms_threshold)
+        self._net = cv2.FaceDetectorYN.create(
+            model_path, "", (320, 320), params.score_threshold, params.nms_threshold
+        )
         self._size: tuple[int, int] = (320, 320)
 
     def detect(
@@ -138,13 +153,15 @@ class YuNetDetector:
         return out
 
 
-def make_detector(kind: str, model_path: str | None = None, **kwargs: float) -> FaceDetector:
+def make_detector(
+    kind: str, model_path: str | None = None, params: HaarParams | YuNetParams | None = None
+) -> FaceDetector:
     """Build the configured detector: ``"haar"`` (default model when ``model_path`` is empty) or
-    ``"yunet"`` (``model_path`` required)."""
+    ``"yunet"`` (``model_path`` required), with its settings (default: the model's)."""
     if kind == "haar":
-        return HaarDetector(model_path or None, **kwargs)  # type: ignore[arg-type]
+        return HaarDetector(model_path or None, params if isinstance(params, HaarParams) else None)
     if kind == "yunet":
-        return YuNetDetector(model_path or "", **kwargs)
+        return YuNetDetector(model_path or "", params if isinstance(params, YuNetParams) else None)
     raise ParameterError(f"detector.kind must be 'haar' or 'yunet', got {kind!r}")
 
 

@@ -152,11 +152,12 @@ def test_no_default_is_written_twice() -> None:
     from services.arm.config import ArmSection
     from services.arm.sim import ArmSimConfig
     from services.goal_tracker.config import DetectorSection, FilterSection
-    from services.goal_tracker.detectors import PipelineParams
+    from services.goal_tracker.detectors import HaarParams, PipelineParams, YuNetParams
     from services.goal_tracker.kalman import KalmanParams
 
     for section, params in ((ArmSection, ArmSimConfig), (FilterSection, KalmanParams),
-                            (DetectorSection, PipelineParams)):
+                            (DetectorSection, PipelineParams), (DetectorSection, HaarParams),
+                            (DetectorSection, YuNetParams)):
         assert issubclass(section, params)
         for name in params.model_fields:
             assert section.model_fields[name].default == params.model_fields[name].default

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.goal_tracker.detectors import HaarDetector
+from services.goal_tracker.detectors import HaarDetector, HaarParams
 from services.goal_tracker.geometry import Intrinsics, camera_point_to_box
 from services.goal_tracker.synthetic import (
     LissajousPath,
@@ -35,7 +35,7 @@ def test_truth_follows_pinhole_model() -> None:
 def test_rendered_face_is_where_the_truth_says() -> None:
     """The default Haar cascade, run plainly on full frames, finds the face at the true box."""
     cam = SyntheticCamera(noise_sigma=0.0)
-    det = HaarDetector(scale_factor=1.05)
+    det = HaarDetector(params=HaarParams(scale_factor=1.05))
     for t in (0.0, 3.0, 7.0, 11.0):
         truth = cam.truth(t)[0].box
         found = det.detect(cam.render(t), 24)
