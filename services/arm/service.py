@@ -167,10 +167,6 @@ class ArmService(ServiceApp):
         self._encoder = StateEncoder(list(self.robot.joint_names), config.arm.frame_id, self.dt_ns * 1e-9)
         self._tf_msg: Any = None
         self._tf_slot = -1
-        #: Lockstep: the command callback steps the arm (see run_lockstep); guarded by _lock.
-        self._fast = False
-        self._lock = threading.Lock()
-        self._last_step = 0.0  # monotonic time of the last step (lockstep starvation watch)
         self._degraded_since = 0  # perf_counter ns of the first miss of the current episode
         self._last_miss_ns = 0
         self._last_miss_log_ns = 0
@@ -201,19 +197,8 @@ class ArmService(ServiceApp):
 
     # ------------------------------------------------------------------ zenoh threads
     def _on_sample(self, sample: Any) -> None:
-        # Zenoh receive thread: enqueue for the loop thread; in lockstep's fast path, handle the
-        # command here and step when it answers the current tick (see run_lockstep).
-        item = (time.perf_counter_ns(), sample.payload.to_bytes(), str(sample.encoding))
-        if self._fast:
-            with self._lock:
-                if self._fast:
-                    if self._handle(item) >= self.sim.tick:
-                        self._step_and_publish()
-                        self._last_step = time.monotonic()
-                        if 0 < self.config.arm.max_ticks <= self.sim.tick:
-                            self._fast = False
-                    return
-        self._inbox.put(item)
+        # Zenoh receive thread: only enqueue (decoding happens on the loop thread).
+        self._inbox.put((time.perf_counter_ns(), sample.payload.to_bytes(), str(sample.encoding)))
 
     def _on_liveliness(self, name: str, alive: bool) -> None:
         if not alive:
@@ -427,100 +412,47 @@ class ArmService(ServiceApp):
         return t0, anchor_tick
 
     def run_lockstep(self) -> None:
-        """Lockstep loop: tick k+1 follows as soon as the command answering tick k arrived.
-
-        Until the first answer, state 0 is re-offered every ``lockstep_timeout_s`` (sim time
-        does not run without a planner). Then the step runs where the answer arrives, in the
-        command subscriber's callback on Zenoh's receive thread (no hand-over to the loop
-        thread: one wake-up less per tick), under :attr:`_lock`; the loop thread only watches:
-        a command that does not come within ``lockstep_timeout_s`` makes the arm advance
-        without it (counted in ``lockstep_timeouts``) at wall-clock pace, so the watchdog brakes
-        promptly, until commands answer again. The order of the work on the simulation (publish
-        state k, apply the command answering k, step) is the same as stepping in one thread.
-        """
+        """Lockstep loop: tick k+1 follows as soon as the command answering tick k arrived."""
+        sim, stats = self.sim, self.stats
         timeout_s = self.config.arm.lockstep_timeout_s
-        self._wait_for_subscribers(timeout_s)
-        with self._lock:
-            self._publish_state()
-        if not self._wait_answer(timeout_s, reoffer=True):
-            return
-        while True:
-            with self._lock:
-                # The fast path is on before the state goes out: its answer is handled where it
-                # arrives (the callback waits for this lock).
-                self._fast = True
-                self._last_step = time.monotonic()
-                self._step_and_publish()
-                if self._done():
-                    self._fast = False
-                    return
-            if not self._watch_fast_path(timeout_s):
-                return
-            # starved: no answer within the timeout; advance at wall-clock pace until one comes
-            self.stats.lockstep_timeouts += 1
-            while True:
-                with self._lock:
-                    self._step_and_publish()
-                    if self._done():
-                        return
-                if self._wait_answer(self.dt_ns * 1e-9, reoffer=False):
-                    break
-                if self.svc.stop_event.is_set():
-                    return
-
-    def _step_and_publish(self) -> None:
-        """Step to the next tick and publish its state (caller holds :attr:`_lock`)."""
-        self.sim.step()
-        self.stats.ticks += 1
-        self._publish_state()
-
-    def _wait_answer(self, timeout_s: float, *, reoffer: bool) -> bool:
-        """Handle inbox items until one answers the current tick (True), ``timeout_s`` passes
-        (False; with ``reoffer``, the state is published again and the wait goes on), or the
-        service stops (False)."""
+        dt_s = self.dt_ns * 1e-9
         get = self._inbox.get
         clock = time.monotonic
-        deadline = clock() + timeout_s
+        self._wait_for_subscribers(timeout_s)
+        started = False
+        starved = False
         while True:
-            remaining = deadline - clock()
-            if remaining <= 0:
-                if not reoffer:
-                    return False
-                with self._lock:
-                    self._publish_state()
-                deadline = clock() + timeout_s
-                continue
-            try:
-                item = get(timeout=min(remaining, 0.1))
-            except queue.Empty:
-                if self.svc.stop_event.is_set():
-                    return False
-                continue
-            with self._lock:
-                if self._handle(item) >= self.sim.tick:
-                    return True
-
-    def _watch_fast_path(self, timeout_s: float) -> bool:
-        """While the callback steps the arm: apply queued liveliness losses, stop at the end
-        (False), or leave the fast path when no command came for ``timeout_s`` (True)."""
-        poll = min(0.05, timeout_s / 4)
-        while True:
-            self.svc.stop_event.wait(poll)
-            with self._lock:
-                while True:  # queued liveliness losses (commands go through the callback)
-                    try:
-                        item = self._inbox.get_nowait()
-                    except queue.Empty:
-                        break
-                    if self._handle(item) >= self.sim.tick and self._fast:
-                        self._step_and_publish()
-                        self._last_step = time.monotonic()
-                if self._done():
-                    self._fast = False
-                    return False
-                if time.monotonic() - self._last_step > timeout_s:
-                    self._fast = False
-                    return True
+            self._publish_state()
+            if self._done():
+                break
+            k = sim.tick
+            answered = self._answered >= k
+            deadline = clock() + (dt_s if starved else timeout_s)
+            while not answered:
+                remaining = deadline - clock()
+                if remaining <= 0:
+                    if not started:  # no planner yet: re-offer state 0, sim time frozen
+                        if self.svc.stop_event.is_set():
+                            return
+                        self._publish_state()
+                        deadline = clock() + timeout_s
+                        continue
+                    stats.lockstep_timeouts += 1
+                    starved = True
+                    break
+                try:
+                    item = get(timeout=min(remaining, 0.1))
+                except queue.Empty:
+                    if self.svc.stop_event.is_set():
+                        return
+                    continue
+                if self._handle(item) >= k:
+                    answered = True
+            if answered:
+                started = True
+                starved = False
+            sim.step()
+            stats.ticks += 1
 
     def run(self) -> dict[str, Any]:
         """Run on the bus until stopped (signal, ``max_ticks``); returns the stats summary."""
