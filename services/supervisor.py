@@ -231,12 +231,10 @@ class _Row:
     service: str
     proc: ManagedProcess
     status: Any = None  #: the latest ServiceStatus
-    status_at: float = 0.0
     rate_base: tuple[float, int, int] | None = None  #: (time, received, published)
     rates: tuple[float, float] = (0.0, 0.0)  #: (received/s, published/s)
     cpu_base: tuple[float, float] | None = None  #: (wall time, cpu seconds)
     cpu_pct: float = 0.0
-    alive_token: bool = False
 
 
 @dataclass
@@ -257,7 +255,6 @@ class Supervisor:
         stack: Stack,
         *,
         env_overrides: Mapping[str, str] | None = None,
-        extra_args: Mapping[str, Sequence[str]] | None = None,
         out: TextIO | None = None,
         live: bool | None = None,
     ) -> None:
@@ -265,7 +262,6 @@ class Supervisor:
         self.cfg = stack.config
         self.run_dir = Path(self.cfg.stack.run_dir)
         self.env = {**os.environ, **(env_overrides or {})}
-        self.extra_args = {k: list(v) for k, v in (extra_args or {}).items()}
         self.out = out or sys.stdout
         self.live = self.out.isatty() if live is None else live
         self.rows: list[_Row] = []
@@ -306,7 +302,7 @@ class Supervisor:
             with self._lock:
                 for row in self.rows:
                     if row.service == msg.service:
-                        row.status, row.status_at = msg, now
+                        row.status = msg
                         counts = (now, int(msg.received), int(msg.published))
                         if row.rate_base is not None and now - row.rate_base[0] >= 0.5:
                             dt = now - row.rate_base[0]
@@ -351,7 +347,6 @@ class Supervisor:
             if self.session is not None:
                 with self._lock:
                     if row.service in self._alive:
-                        row.alive_token = True
                         return
             time.sleep(0.05)
         raise StackFailureError(
@@ -380,7 +375,7 @@ class Supervisor:
                             f"{spec.name}: tcp/{endpoint[0]}:{endpoint[1]} is already in use "
                             "(another router running?)"
                         )
-            argv = psm_argv([*spec.command, "--config", config, *self.extra_args.get(spec.name, [])])
+            argv = psm_argv([*spec.command, "--config", config])
             proc = ManagedProcess(spec.name, argv, self.run_dir / f"{spec.name}.log", env=self.env)
             row = _Row(spec.name, spec.service_name, proc)
             with self._lock:
@@ -514,14 +509,13 @@ def run_stack(
     *,
     duration_s: float | None = None,
     env_overrides: Mapping[str, str] | None = None,
-    extra_args: Mapping[str, Sequence[str]] | None = None,
     out: TextIO | None = None,
     live: bool | None = None,
     on_started: Callable[[Supervisor], None] | None = None,
 ) -> int:
     """``psm up``: start, watch, stop, summarise; returns the exit code (0 clean, 1 when a
     process failed; SIGINT/SIGTERM end the run cleanly)."""
-    sup = Supervisor(stack, env_overrides=env_overrides, extra_args=extra_args, out=out, live=live)
+    sup = Supervisor(stack, env_overrides=env_overrides, out=out, live=live)
 
     def on_signal(signum: int, _frame: Any) -> None:
         sup.stop(f"signal {signal.Signals(signum).name}")
