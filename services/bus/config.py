@@ -78,6 +78,8 @@ __all__ = [
     "env_var_name",
     "load_config",
     "parse_override",
+    "read_toml",
+    "set_items",
 ]
 
 T = TypeVar("T", bound="ServiceConfig")
