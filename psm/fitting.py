@@ -206,23 +206,46 @@ def _gaussian_smooth(X: NDArray, sigma_samples: float) -> NDArray:
     caller's (the samples beyond the ends are taken as equal to the end samples).
 
     The FFT path is ``scipy.signal.fftconvolve(..., mode="valid")`` written out (same transforms,
-    same result) on a ``(D, T)`` copy, which halves its cost at a few thousand samples."""
+    same result) on a ``(D, n_fft)`` buffer filled in place (the zero padding to the transform
+    length included), which halves its cost at a few thousand samples; the kernel's transform is
+    reused from :func:`_kernel_spectrum`."""
     radius = int(4.0 * sigma_samples + 0.5)
     if radius < 16 or X.shape[0] < 4 * radius:
         return gaussian_filter1d(X, sigma_samples, axis=0, mode="nearest")
-    u = np.arange(-radius, radius + 1, dtype=float)
-    kernel = np.exp(-0.5 * (u / sigma_samples) ** 2)
-    kernel /= kernel.sum()
     T, D = X.shape
-    padded = np.empty((D, T + 2 * radius))  # the end samples repeated ``radius`` times
+    width = T + 2 * radius  # the end samples repeated ``radius`` times
+    n_fft = sp_fft.next_fast_len(width + 2 * radius, True)  # the full convolution's length
+    padded = np.empty((D, n_fft))
     padded[:, :radius] = X[:1].T
     padded[:, radius : radius + T] = X.T
-    padded[:, radius + T :] = X[-1:].T
-    n_full = padded.shape[1] + kernel.size - 1
-    n_fft = sp_fft.next_fast_len(n_full, True)
-    spectrum = sp_fft.rfft(padded, n_fft, axis=1) * sp_fft.rfft(kernel, n_fft)
+    padded[:, radius + T : width] = X[-1:].T
+    padded[:, width:] = 0.0
+    spectrum = sp_fft.rfft(padded, axis=1)
+    spectrum *= _kernel_spectrum(sigma_samples, radius, n_fft)
     full = sp_fft.irfft(spectrum, n_fft, axis=1)
-    return full[:, kernel.size - 1 : padded.shape[1]].T
+    return full[:, 2 * radius : width].T
+
+
+#: Kernel transforms of recent :func:`_gaussian_smooth` calls, by ``(sigma_samples, radius, n_fft)``.
+_KERNEL_SPECTRA: dict[tuple[float, int, int], NDArray[np.complex128]] = {}
+
+
+def _kernel_spectrum(sigma_samples: float, radius: int, n_fft: int) -> NDArray[np.complex128]:
+    """The real FFT ``(n_fft // 2 + 1,)`` of the normalised Gaussian kernel of ``sigma_samples``
+    truncated at ``radius`` samples, zero-padded to ``n_fft``; computed once per key (the fit of
+    one kind of demonstration asks for the same one every time) and kept read-only."""
+    key = (sigma_samples, radius, n_fft)
+    spectrum = _KERNEL_SPECTRA.get(key)
+    if spectrum is None:
+        u = np.arange(-radius, radius + 1, dtype=float)
+        kernel = np.exp(-0.5 * (u / sigma_samples) ** 2)
+        kernel /= kernel.sum()
+        spectrum = sp_fft.rfft(kernel, n_fft)
+        spectrum.flags.writeable = False
+        if len(_KERNEL_SPECTRA) >= 16:
+            _KERNEL_SPECTRA.pop(next(iter(_KERNEL_SPECTRA)))
+        _KERNEL_SPECTRA[key] = spectrum
+    return spectrum
 
 
 def turning_points(x: NDArray, tolerance: float) -> list[int]:
