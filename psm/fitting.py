@@ -151,9 +151,23 @@ def smooth(t: NDArray, X: NDArray, sigma: float) -> SmoothedDemo:
         x = _gaussian_smooth(padded, sigma / dt)[pad : pad + X.shape[0]]
     else:
         x = X.copy()
-    v = np.gradient(x, dt, axis=0)
-    a = np.gradient(v, dt, axis=0)
+    v = _gradient(x, dt)
+    a = _gradient(v, dt)
     return SmoothedDemo(t=t, x=x, v=v, a=a, dt=dt)
+
+
+def _gradient(q: NDArray, dt: float) -> NDArray:
+    """``np.gradient(q, dt, axis=0)`` for ``q (T, D)``, ``T ≥ 2``, ``dt`` [s] (the same operations:
+    central differences inside, one-sided at the ends), without its argument handling; the
+    result has ``q``'s memory layout."""
+    out = np.empty_like(q)
+    np.subtract(q[2:], q[:-2], out=out[1:-1])
+    out[1:-1] /= 2.0 * dt
+    np.subtract(q[1], q[0], out=out[0])
+    out[0] /= dt
+    np.subtract(q[-1], q[-2], out=out[-1])
+    out[-1] /= dt
+    return out
 
 
 #: The fit's grid spacing is at most ``sigma / FIT_GRID_PER_SIGMA`` (see :func:`fit_grid`).
@@ -303,9 +317,25 @@ def noise_level(x: NDArray) -> NDArray:
     smoothing left (≈ 0 for clean data)."""
     if x.shape[0] < 3:
         return np.zeros(x.shape[1])
-    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    q = x.T  # (D, T): along memory order for the usual column-major x
+    d2 = q[:, 2:] - 2.0 * q[:, 1:-1] + q[:, :-2]
+    if not np.isfinite(d2).all():  # NaN propagates through np.median, not through _row_medians
+        mad = np.median(np.abs(d2 - np.median(d2, axis=1)[:, None]), axis=1)
+    else:
+        mad = _row_medians(np.abs(d2 - _row_medians(d2)[:, None]))
     return mad / (0.6745 * math.sqrt(6.0))
+
+
+def _row_medians(q: NDArray) -> NDArray:
+    """``np.median(q, axis=1)`` of a finite ``q (D, n)``, ``n ≥ 1``, ``(D,)``: the same partition
+    and the same mean of the middle two (``(a + b) / 2``), without np.median's generic handling
+    (NaN checks, axis bookkeeping), which is most of its cost at a few thousand numbers."""
+    n = q.shape[1]
+    half = n // 2
+    if n % 2:
+        return np.partition(q, half, axis=1)[:, half].copy()
+    part = np.partition(q, [half - 1, half], axis=1)
+    return (part[:, half - 1] + part[:, half]) / 2.0
 
 
 class _PrefixSums:
