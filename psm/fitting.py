@@ -351,12 +351,18 @@ class _PrefixSums:
         T, D = x.shape
         self.stride = T + 1
         self.rows = np.empty((5, D * (T + 1)))
-        self.rows[:, :: T + 1] = 0.0  # the sum over no sample, before each dimension
-        for d in range(D):
-            x_d, a_d = x[:, d], a[:, d]
-            first = d * (T + 1) + 1
-            for row, term in zip(self.rows, (x_d, x_d * x_d, a_d, a_d * a_d, x_d * a_d), strict=True):
-                np.cumsum(term, out=row[first : first + T])
+        sums = self.rows.reshape(5, D, T + 1)
+        sums[:, :, 0] = 0.0  # the sum over no sample, before each dimension
+        # The five terms of every dimension, (5, D, T), summed in one accumulation along time
+        # (sequential, as np.cumsum of each term alone).
+        terms = np.empty((5, D, T))
+        x_t, a_t = x.T, a.T
+        terms[0] = x_t
+        np.multiply(x_t, x_t, out=terms[1])
+        terms[2] = a_t
+        np.multiply(a_t, a_t, out=terms[3])
+        np.multiply(x_t, a_t, out=terms[4])
+        np.add.accumulate(terms, axis=2, out=sums[:, :, 1:])
 
     def line(
         self, d: int, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float, k_cap: float
