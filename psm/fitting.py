@@ -145,10 +145,7 @@ def smooth(t: NDArray, X: NDArray, sigma: float) -> SmoothedDemo:
         # the goal stay where they were measured and the motion's slope continues through them
         # (padding with the end value would pull a motion still moving there inwards).
         pad = min(math.ceil(4.0 * sigma / dt), X.shape[0] - 1)
-        head = 2.0 * X[0] - X[pad:0:-1]
-        tail = 2.0 * X[-1] - X[-2 : -pad - 2 : -1]
-        padded = np.concatenate([head, X, tail])
-        x = _gaussian_smooth(padded, sigma / dt)[pad : pad + X.shape[0]]
+        x = _gaussian_smooth(X, sigma / dt, reflect=pad)
     else:
         x = X.copy()
     v = _gradient(x, dt)
@@ -214,30 +211,44 @@ def fit_grid(demo: SmoothedDemo, sigma: float) -> SmoothedDemo:
     return SmoothedDemo(t=np.arange(n + 1) * spacing, x=x, v=v, a=a, dt=spacing)
 
 
-def _gaussian_smooth(X: NDArray, sigma_samples: float) -> NDArray:
+def _gaussian_smooth(X: NDArray, sigma_samples: float, reflect: int = 0) -> NDArray:
     """Gaussian smoothing of ``X (T, D)`` along time with ``sigma_samples``; the kernel is truncated
-    at 4 sigma. Long kernels are applied by FFT (O(T log T)), short ones directly; the edges are the
-    caller's (the samples beyond the ends are taken as equal to the end samples).
+    at 4 sigma. Long kernels are applied by FFT (O(T log T)), short ones directly.
+
+    ``reflect`` samples point-reflected about each end sample extend ``X`` first
+    (``2 X[0] − X[reflect:0:-1]`` before it, ``2 X[-1] − X[-2:-reflect-2:-1]`` after it,
+    ``reflect < T``); beyond that the samples are taken as equal to the first and last ones. The
+    result is that of ``X``'s own samples, ``(T, D)``.
 
     The FFT path is ``scipy.signal.fftconvolve(..., mode="valid")`` written out (same transforms,
-    same result) on a ``(D, n_fft)`` buffer filled in place (the zero padding to the transform
-    length included), which halves its cost at a few thousand samples; the kernel's transform is
-    reused from :func:`_kernel_spectrum`."""
+    same result) on a ``(D, n_fft)`` buffer filled in place (extension and zero padding to the
+    transform length included: no concatenated copy, which at a few thousand samples also keeps
+    the fit's memory from growing), with the kernel's transform from :func:`_kernel_spectrum`."""
     radius = int(4.0 * sigma_samples + 0.5)
-    if radius < 16 or X.shape[0] < 4 * radius:
-        return gaussian_filter1d(X, sigma_samples, axis=0, mode="nearest")
     T, D = X.shape
-    width = T + 2 * radius  # the end samples repeated ``radius`` times
+    extended = T + 2 * reflect
+    if radius < 16 or extended < 4 * radius:
+        if reflect:
+            head = 2.0 * X[0] - X[reflect:0:-1]
+            tail = 2.0 * X[-1] - X[-2 : -reflect - 2 : -1]
+            X = np.concatenate([head, X, tail])
+        return gaussian_filter1d(X, sigma_samples, axis=0, mode="nearest")[reflect : reflect + T]
+    width = extended + 2 * radius  # the end samples repeated ``radius`` times
     n_fft = sp_fft.next_fast_len(width + 2 * radius, True)  # the full convolution's length
     padded = np.empty((D, n_fft))
-    padded[:, :radius] = X[:1].T
-    padded[:, radius : radius + T] = X.T
-    padded[:, radius + T : width] = X[-1:].T
+    body = padded[:, radius : radius + extended]
+    if reflect:
+        np.subtract((2.0 * X[0])[:, None], X[reflect:0:-1].T, out=body[:, :reflect])
+        np.subtract((2.0 * X[-1])[:, None], X[-2 : -reflect - 2 : -1].T, out=body[:, reflect + T :])
+    body[:, reflect : reflect + T] = X.T
+    padded[:, :radius] = body[:, :1]
+    padded[:, radius + extended : width] = body[:, -1:]
     padded[:, width:] = 0.0
     spectrum = sp_fft.rfft(padded, axis=1)
+    del padded, body  # (freed before the inverse transform allocates its result)
     spectrum *= _kernel_spectrum(sigma_samples, radius, n_fft)
     full = sp_fft.irfft(spectrum, n_fft, axis=1)
-    return full[:, 2 * radius : width].T
+    return full[:, 2 * radius + reflect : 2 * radius + reflect + T].T
 
 
 #: Kernel transforms of recent :func:`_gaussian_smooth` calls, by ``(sigma_samples, radius, n_fft)``.
@@ -353,16 +364,16 @@ class _PrefixSums:
         self.rows = np.empty((5, D * (T + 1)))
         sums = self.rows.reshape(5, D, T + 1)
         sums[:, :, 0] = 0.0  # the sum over no sample, before each dimension
-        # The five terms of every dimension, (5, D, T), summed in one accumulation along time
-        # (sequential, as np.cumsum of each term alone).
-        terms = np.empty((5, D, T))
+        # The five terms of every dimension, (5, D, T), written in place and summed there in one
+        # accumulation along time (sequential, as np.cumsum of each term alone; no temporary).
+        terms = sums[:, :, 1:]
         x_t, a_t = x.T, a.T
         terms[0] = x_t
         np.multiply(x_t, x_t, out=terms[1])
         terms[2] = a_t
         np.multiply(a_t, a_t, out=terms[3])
         np.multiply(x_t, a_t, out=terms[4])
-        np.add.accumulate(terms, axis=2, out=sums[:, :, 1:])
+        np.add.accumulate(terms, axis=2, out=terms)
 
     def line(
         self, d: int, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float, k_cap: float
