@@ -410,24 +410,39 @@ class _PrefixSums:
         Returns ``(k, sse)`` ``(n,)`` [1/s², unit²/s⁴]. Numpy's per-call cost dominates at the
         sizes of a split search, so the arithmetic is written with as few calls as possible (the
         same operations, in the same order, as :meth:`line`)."""
-        sx, sxx, sa, saa, sxa = self.rows.take(j, axis=1) - self.rows.take(i, axis=1)
+        # (Updated in place where a temporary is not needed again: fewer allocations.)
+        rows = self.rows.take(j, axis=1)
+        sx, sxx, sa, saa, sxa = np.subtract(rows, self.rows.take(i, axis=1), out=rows)
         x_c, vv_c, speed_c = start
         x_n, vv_n, speed_n = end
         n = steps + 1.0
         delta = x_n - x_c
         moving = delta != 0.0
         kappa = kappa * moving
-        safe = delta + ~moving  # Δ, or 1 where Δ = 0
-        c0 = (vv_n - vv_c) / (2.0 * safe)
-        m = 0.5 * (x_c + x_n)
+        safe = np.logical_not(moving, out=moving).astype(float)
+        safe += delta  # Δ, or 1 where Δ = 0
+        c0 = vv_n - vv_c
+        c0 /= 2.0 * safe  # (v_n² − v_c²) / (2Δ)
+        m = x_c + x_n
+        m *= 0.5
         n_c0 = n * c0
-        num = sxa - m * sa - c0 * sx + n_c0 * m
-        den = sxx - 2.0 * m * sx + n * m * m
-        k_ls = num / np.where(den > 0.0, den, 1.0)
-        k_cap = K_MAX_FRACTION * ((speed_c + speed_n) / safe) ** 2 - kappa
-        k = np.minimum(k_ls, k_cap)
+        num = sxa - m * sa
+        num -= c0 * sx
+        num += n_c0 * m  # sxa − m sa − c0 sx + n c0 m
+        den = sxx - 2.0 * m * sx
+        den += n * m * m  # sxx − 2 m sx + n m m
+        k = num / np.where(den > 0.0, den, 1.0)
+        k_cap = speed_c + speed_n
+        k_cap /= safe
+        k_cap *= k_cap
+        k_cap *= K_MAX_FRACTION
+        k_cap -= kappa  # ρ ((|v_c| + |v_n|)/Δ)² − kappa
+        np.minimum(k, k_cap, out=k)
         k = np.where(np.isfinite(k), k, -kappa)
-        sse = saa - 2.0 * c0 * sa + n_c0 * c0 - 2.0 * k * num + k * k * den
+        sse = saa - 2.0 * c0 * sa
+        sse += n_c0 * c0
+        sse -= 2.0 * k * num
+        sse += k * k * den  # saa − 2 c0 sa + n c0 c0 − 2 k num + k k den
         return k, np.maximum(sse, 0.0, out=sse)
 
 
@@ -529,8 +544,11 @@ class _Segmenter:
         if last < first:
             return np.empty(0, dtype=np.intp)
         x_in = self.x[first : last + 1]
-        ok = (np.abs(x_in - self.x[lo]) >= min_delta) & (np.abs(self.x[hi] - x_in) >= min_delta)
-        cand = np.flatnonzero(ok) + first
+        # min(|x − x_lo|, |x_hi − x|) ≥ min_delta: both halves move enough (NaN fails either way).
+        gap = np.abs(x_in - self.x[lo])
+        np.minimum(gap, np.abs(self.x[hi] - x_in), out=gap)
+        cand = np.flatnonzero(gap >= min_delta)
+        cand += first
         if cand.size > 128:  # at most ~128 evenly spaced candidates
             cand = cand[:: math.ceil(cand.size / 128)]
         return cand

@@ -172,13 +172,14 @@ def positions_from_acceleration(
     abs_z = np.abs(z)
     r = np.sqrt(abs_z)
     grows = z > 0.0
+    any_ = np.logical_or.reduce  # ndarray.any() without its Python-level wrapper
     with np.errstate(all="ignore"):
         # z > 0: S = sinh(r)/r, G = (cosh r − 1)/z; z < 0: sin(r)/r, (1 − cos r)/r²; small |z|: series
         # (z = 0 gets the series and NaN stays NaN on either branch, so one branch may serve all).
-        if not grows.any():
+        if not any_(grows, axis=None):
             s_ = np.sin(r) / r
             g_ = (1.0 - np.cos(r)) / (r * r)
-        elif not (z < 0.0).any():
+        elif not any_(z < 0.0, axis=None):
             s_ = np.sinh(r) / r
             g_ = (np.cosh(r) - 1.0) / z
         else:
