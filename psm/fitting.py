@@ -450,7 +450,8 @@ class _Samples:
     """The smoothed samples of all ``D`` dimensions, laid out for vectorised work across them.
 
     ``t (T,)`` [s], ``dt`` [s]; ``x (D·T,)`` positions [unit] and ``v_knot (D·T,)`` via-point
-    velocities [unit/s] of dimension ``d`` at ``[d·T, (d+1)·T)``; ``sums`` their prefix sums.
+    velocities [unit/s] of dimension ``d`` at ``[d·T, (d+1)·T)``, ``t_all (D·T,)`` [s] their
+    times; ``sums`` their prefix sums.
     For the split search (while ``v_knot`` does not change): ``states (3, D·T)`` the rows ``x``,
     ``v_knot²``, ``|v_knot|``, and ``kappa_of_steps (T,)`` [1/s²] the stability margin
     ``(2μ/T_seg)²`` of a segment ``n`` samples long (:func:`psm.pstf.k_limit`).
@@ -467,6 +468,7 @@ class _Samples:
         np.multiply(self.v_knot, self.v_knot, out=self.states[1])
         np.abs(self.v_knot, out=self.states[2])
         self.kappa_of_steps = (2.0 * min_speed_ratio / np.maximum(np.arange(self.T) * dt, 1e-12)) ** 2
+        self.t_all = np.tile(t, x.shape[1])  # (D·T,): the time of every element of x
         self.sums = _PrefixSums(x, a)
 
 
@@ -484,8 +486,10 @@ class _Segmenter:
         self.x = samples.x[d * T : (d + 1) * T]
         self.v_knot = samples.v_knot[d * T : (d + 1) * T]
         self.min_speed_ratio, self.k_fit = min_speed_ratio, k_fit
-        self._slopes: dict[tuple[int, int, float, float], float] = {}
-        self._lines: dict[tuple[int, int, float, float], tuple[float, ...]] = {}
+        # By (lo, hi): valid while v_knot[lo] and v_knot[hi] stay as they were (:meth:`set_velocities`
+        # drops the entries a velocity change affects).
+        self._slopes: dict[tuple[int, int], float] = {}
+        self._lines: dict[tuple[int, int], tuple[float, ...]] = {}
 
     def boundary(self, lo: int, hi: int) -> tuple[float, float, float, float]:
         """``(x_c, v_c, x_n, v_n)``; a knot velocity pointing against the segment (noise) is 0."""
@@ -502,23 +506,33 @@ class _Segmenter:
 
     def slope(self, lo: int, hi: int) -> float:
         """The segment's ``k`` [1/s²]: least squares (clamped) or the demonstrated duration."""
-        key = (lo, hi, float(self.v_knot[lo]), float(self.v_knot[hi]))
-        if key not in self._slopes:
-            self._slopes[key] = self._slope(lo, hi)
-        return self._slopes[key]
+        k = self._slopes.get((lo, hi))
+        if k is None:
+            k = self._slopes[(lo, hi)] = self._slope(lo, hi)
+        return k
+
+    def set_velocities(self, cuts: NDArray, velocities: NDArray) -> None:
+        """Set ``v_knot`` at the samples ``cuts (n,)`` to ``velocities (n,)`` [unit/s] and forget
+        the lines and slopes of the segments between consecutive cuts that this changes."""
+        changed = (self.v_knot[cuts] != velocities).tolist()
+        self.v_knot[cuts] = velocities
+        bounds = cuts.tolist()
+        for s in range(len(bounds) - 1):
+            if changed[s] or changed[s + 1]:
+                self._lines.pop((bounds[s], bounds[s + 1]), None)
+                self._slopes.pop((bounds[s], bounds[s + 1]), None)
 
     def _line(self, lo: int, hi: int) -> tuple[float, float, float, float, float, float, float]:
         """``(x_c, v_c, x_n, v_n, k_cap, k_ls, sse)`` of the segment: its :meth:`boundary`, the
         stability cap of its slope [1/s²] and the clamped least-squares line fit
         (:meth:`_PrefixSums.line`). The split search asks :meth:`within_budget` first and
         :meth:`slope` after; the line is computed once for both."""
-        key = (lo, hi, float(self.v_knot[lo]), float(self.v_knot[hi]))
-        line = self._lines.get(key)
+        line = self._lines.get((lo, hi))
         if line is None:
             x_c, v_c, x_n, v_n = self.boundary(lo, hi)
             k_cap = k_limit(v_c, v_n, x_n - x_c, self.kappa(lo, hi))
             k_ls, sse = self.sums.line(self.d, lo, hi, x_c, v_c, x_n, v_n, k_cap)
-            line = self._lines[key] = (x_c, v_c, x_n, v_n, k_cap, k_ls, sse)
+            line = self._lines[(lo, hi)] = (x_c, v_c, x_n, v_n, k_cap, k_ls, sse)
         return line
 
     def _slope(self, lo: int, hi: int) -> float:
@@ -566,9 +580,12 @@ def _deviations(segments: Sequence[tuple[_Segmenter, int, int]]) -> list[float]:
     if not segments:
         return []
     samples = segments[0][0].samples
-    index = []  # per segment: first sample, step, position in the batch, offset in samples.x
-    params = []  # per segment: x_c, v_c, k, a_c, t_lo, t_end, x_n
+    t = samples.t
+    # Per segment, as floats (integers are exact): base, step (sample ``base + step·j`` of
+    # samples.x is the batch's element j), x_c, v_c, k, a_c, t_lo, t_end, x_n.
+    params = []
     counts = []
+    starts = []  # position of each segment's first sample in the batch
     total = 0
     for seg, lo, hi in segments:
         x_c, v_c, x_n, v_n = seg._line(lo, hi)[:4]  # the boundary, as the budget check found it
@@ -577,19 +594,20 @@ def _deviations(segments: Sequence[tuple[_Segmenter, int, int]]) -> list[float]:
         t_end = time_to_reach(x_c, v_c, x_n, v_n, k)
         step = max(1, (hi - lo) // 32)
         count = (hi - lo) // step + 1
-        index.append((lo, step, total, seg.offset))
-        params.append((x_c, v_c, k, k * x_c + c, float(samples.t[lo]), t_end, x_n))
+        base = lo + seg.offset - step * total
+        params.append((base, step, x_c, v_c, k, k * x_c + c, float(t[lo]), t_end, x_n))
         counts.append(count)
+        starts.append(total)
         total += count
-    lo_s, step_s, start_s, offset_s = np.repeat(np.array(index), counts, axis=0).T
-    x_c, v_c, k, a_c, t_lo, t_end, x_n = np.repeat(np.array(params), counts, axis=0).T
-    i = lo_s + step_s * (np.arange(total) - start_s)  # the samples evaluated, (total,)
-    elapsed = samples.t.take(i) - t_lo
+    base, step, x_c, v_c, k, a_c, t_lo, t_end, x_n = np.repeat(np.array(params), counts, axis=0).T
+    i = (base + step * np.arange(total)).astype(np.intp)  # the samples evaluated in samples.x
+    elapsed = samples.t_all.take(i) - t_lo
     # Past its arrival the PSTF would continue; the chain moves on to the next segment.
     x_model = np.where(elapsed <= t_end, positions_from_acceleration(elapsed, x_c, v_c, k, a_c), x_n)
-    error = np.abs(x_model - samples.x.take(i + offset_s))
+    error = np.subtract(x_model, samples.x.take(i), out=x_model)
+    np.abs(error, out=error)
     # fmax skips NaN samples (a degenerate least-squares k) as max(worst, nan) does; all NaN -> 0.
-    worst = np.fmax.reduceat(error, [row[2] for row in index]).tolist()
+    worst = np.fmax.reduceat(error, starts).tolist()
     return [w if w == w else 0.0 for w in worst]
 
 
@@ -767,7 +785,7 @@ def _chain(segmenter: _Segmenter, cuts: list[int]) -> DimensionFit:
     vel = np.array([b[1] for b in bounds] + [0.0])
     vel[1:-1] = np.where(vel[1:-1] * np.array([b[3] for b in bounds[:-1]]) > 0.0, vel[1:-1], 0.0)
     kappa = np.array([segmenter.kappa(lo, hi) for lo, hi in itertools.pairwise(cuts)])
-    segmenter.v_knot[cut_idx] = vel  # the split search is over: only slope() reads it from here
+    segmenter.set_velocities(cut_idx, vel)  # the split search is over: only slope() reads them now
     k = np.array([segmenter.slope(lo, hi) for lo, hi in itertools.pairwise(cuts)])
     durations = np.array(
         [time_to_reach(knots[s], vel[s], knots[s + 1], vel[s + 1], k[s]) for s in range(k.size)]
