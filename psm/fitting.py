@@ -171,14 +171,18 @@ def _gradient(q: NDArray, dt: float) -> NDArray:
 FIT_GRID_PER_SIGMA = 4.0
 
 
-def _interpolate_rows(q: NDArray, low: NDArray, w: NDArray) -> NDArray:
-    """``q[low] (1 − w) + q[low + 1] w`` for ``q (T, D)``, ``low, w (n,)``, worked along memory
+def _interpolate_rows(q: NDArray, low: NDArray, high: NDArray, w_low: NDArray, w: NDArray) -> NDArray:
+    """``q[low] w_low + q[high] w`` for ``q (T, D)``, ``low, high = low + 1, w (n,)`` and
+    ``w_low = 1 − w`` (the caller's, shared by the arrays it interpolates), worked along memory
     order: the smoothed arrays are usually column-major (``(D, T)`` transposed), where gathering
     rows is several times slower than gathering within each column."""
     if q.strides[0] < q.strides[1]:  # column-major (or a slice of such an array)
         qt = q.T
-        return (qt.take(low, axis=1) * (1.0 - w) + qt.take(low + 1, axis=1) * w).T
-    return q.take(low, axis=0) * (1.0 - w)[:, None] + q.take(low + 1, axis=0) * w[:, None]
+        out = qt.take(low, axis=1)
+        out *= w_low
+        out += qt.take(high, axis=1) * w
+        return out.T
+    return q.take(low, axis=0) * w_low[:, None] + q.take(high, axis=0) * w[:, None]
 
 
 def fit_grid(demo: SmoothedDemo, sigma: float) -> SmoothedDemo:
@@ -206,7 +210,8 @@ def fit_grid(demo: SmoothedDemo, sigma: float) -> SmoothedDemo:
     w = position - low
     # (Interpolated per array: a stacked (T, 3D) copy would be a large allocation, which costs
     # page faults on every fit.)
-    x, v, a = (_interpolate_rows(q, low, w) for q in (demo.x, demo.v, demo.a))
+    high, w_low = low + 1, 1.0 - w
+    x, v, a = (_interpolate_rows(q, low, high, w_low, w) for q in (demo.x, demo.v, demo.a))
     spacing = float(demo.t[-1]) / n
     return SmoothedDemo(t=np.arange(n + 1) * spacing, x=x, v=v, a=a, dt=spacing)
 
