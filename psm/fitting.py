@@ -145,29 +145,44 @@ def smooth(t: NDArray, X: NDArray, sigma: float) -> SmoothedDemo:
         # the goal stay where they were measured and the motion's slope continues through them
         # (padding with the end value would pull a motion still moving there inwards).
         pad = min(math.ceil(4.0 * sigma / dt), X.shape[0] - 1)
-        head = 2.0 * X[0] - X[pad:0:-1]
-        tail = 2.0 * X[-1] - X[-2 : -pad - 2 : -1]
-        padded = np.concatenate([head, X, tail])
-        x = _gaussian_smooth(padded, sigma / dt)[pad : pad + X.shape[0]]
+        x = _gaussian_smooth(X, sigma / dt, reflect=pad)
     else:
         x = X.copy()
-    v = np.gradient(x, dt, axis=0)
-    a = np.gradient(v, dt, axis=0)
+    v = _gradient(x, dt)
+    a = _gradient(v, dt)
     return SmoothedDemo(t=t, x=x, v=v, a=a, dt=dt)
+
+
+def _gradient(q: NDArray, dt: float) -> NDArray:
+    """``np.gradient(q, dt, axis=0)`` for ``q (T, D)``, ``T ≥ 2``, ``dt`` [s] (the same operations:
+    central differences inside, one-sided at the ends), without its argument handling; the
+    result has ``q``'s memory layout."""
+    out = np.empty_like(q)
+    np.subtract(q[2:], q[:-2], out=out[1:-1])
+    out[1:-1] /= 2.0 * dt
+    np.subtract(q[1], q[0], out=out[0])
+    out[0] /= dt
+    np.subtract(q[-1], q[-2], out=out[-1])
+    out[-1] /= dt
+    return out
 
 
 #: The fit's grid spacing is at most ``sigma / FIT_GRID_PER_SIGMA`` (see :func:`fit_grid`).
 FIT_GRID_PER_SIGMA = 4.0
 
 
-def _interpolate_rows(q: NDArray, low: NDArray, w: NDArray) -> NDArray:
-    """``q[low] (1 − w) + q[low + 1] w`` for ``q (T, D)``, ``low, w (n,)``, worked along memory
+def _interpolate_rows(q: NDArray, low: NDArray, high: NDArray, w_low: NDArray, w: NDArray) -> NDArray:
+    """``q[low] w_low + q[high] w`` for ``q (T, D)``, ``low, high = low + 1, w (n,)`` and
+    ``w_low = 1 − w`` (the caller's, shared by the arrays it interpolates), worked along memory
     order: the smoothed arrays are usually column-major (``(D, T)`` transposed), where gathering
     rows is several times slower than gathering within each column."""
     if q.strides[0] < q.strides[1]:  # column-major (or a slice of such an array)
         qt = q.T
-        return (qt.take(low, axis=1) * (1.0 - w) + qt.take(low + 1, axis=1) * w).T
-    return q.take(low, axis=0) * (1.0 - w)[:, None] + q.take(low + 1, axis=0) * w[:, None]
+        out = qt.take(low, axis=1)
+        out *= w_low
+        out += qt.take(high, axis=1) * w
+        return out.T
+    return q.take(low, axis=0) * w_low[:, None] + q.take(high, axis=0) * w[:, None]
 
 
 def fit_grid(demo: SmoothedDemo, sigma: float) -> SmoothedDemo:
@@ -195,34 +210,72 @@ def fit_grid(demo: SmoothedDemo, sigma: float) -> SmoothedDemo:
     w = position - low
     # (Interpolated per array: a stacked (T, 3D) copy would be a large allocation, which costs
     # page faults on every fit.)
-    x, v, a = (_interpolate_rows(q, low, w) for q in (demo.x, demo.v, demo.a))
+    high, w_low = low + 1, 1.0 - w
+    x, v, a = (_interpolate_rows(q, low, high, w_low, w) for q in (demo.x, demo.v, demo.a))
     spacing = float(demo.t[-1]) / n
     return SmoothedDemo(t=np.arange(n + 1) * spacing, x=x, v=v, a=a, dt=spacing)
 
 
-def _gaussian_smooth(X: NDArray, sigma_samples: float) -> NDArray:
+def _gaussian_smooth(X: NDArray, sigma_samples: float, reflect: int = 0) -> NDArray:
     """Gaussian smoothing of ``X (T, D)`` along time with ``sigma_samples``; the kernel is truncated
-    at 4 sigma. Long kernels are applied by FFT (O(T log T)), short ones directly; the edges are the
-    caller's (the samples beyond the ends are taken as equal to the end samples).
+    at 4 sigma. Long kernels are applied by FFT (O(T log T)), short ones directly.
+
+    ``reflect`` samples point-reflected about each end sample extend ``X`` first
+    (``2 X[0] − X[reflect:0:-1]`` before it, ``2 X[-1] − X[-2:-reflect-2:-1]`` after it,
+    ``reflect < T``); beyond that the samples are taken as equal to the first and last ones. The
+    result is that of ``X``'s own samples, ``(T, D)``.
 
     The FFT path is ``scipy.signal.fftconvolve(..., mode="valid")`` written out (same transforms,
-    same result) on a ``(D, T)`` copy, which halves its cost at a few thousand samples."""
+    same result) on a ``(D, n_fft)`` buffer filled in place (extension and zero padding to the
+    transform length included: no concatenated copy, which at a few thousand samples also keeps
+    the fit's memory from growing), with the kernel's transform from :func:`_kernel_spectrum`."""
     radius = int(4.0 * sigma_samples + 0.5)
-    if radius < 16 or X.shape[0] < 4 * radius:
-        return gaussian_filter1d(X, sigma_samples, axis=0, mode="nearest")
-    u = np.arange(-radius, radius + 1, dtype=float)
-    kernel = np.exp(-0.5 * (u / sigma_samples) ** 2)
-    kernel /= kernel.sum()
     T, D = X.shape
-    padded = np.empty((D, T + 2 * radius))  # the end samples repeated ``radius`` times
-    padded[:, :radius] = X[:1].T
-    padded[:, radius : radius + T] = X.T
-    padded[:, radius + T :] = X[-1:].T
-    n_full = padded.shape[1] + kernel.size - 1
-    n_fft = sp_fft.next_fast_len(n_full, True)
-    spectrum = sp_fft.rfft(padded, n_fft, axis=1) * sp_fft.rfft(kernel, n_fft)
+    extended = T + 2 * reflect
+    if radius < 16 or extended < 4 * radius:
+        if reflect:
+            head = 2.0 * X[0] - X[reflect:0:-1]
+            tail = 2.0 * X[-1] - X[-2 : -reflect - 2 : -1]
+            X = np.concatenate([head, X, tail])
+        return gaussian_filter1d(X, sigma_samples, axis=0, mode="nearest")[reflect : reflect + T]
+    width = extended + 2 * radius  # the end samples repeated ``radius`` times
+    n_fft = sp_fft.next_fast_len(width + 2 * radius, True)  # the full convolution's length
+    padded = np.empty((D, n_fft))
+    body = padded[:, radius : radius + extended]
+    if reflect:
+        np.subtract((2.0 * X[0])[:, None], X[reflect:0:-1].T, out=body[:, :reflect])
+        np.subtract((2.0 * X[-1])[:, None], X[-2 : -reflect - 2 : -1].T, out=body[:, reflect + T :])
+    body[:, reflect : reflect + T] = X.T
+    padded[:, :radius] = body[:, :1]
+    padded[:, radius + extended : width] = body[:, -1:]
+    padded[:, width:] = 0.0
+    spectrum = sp_fft.rfft(padded, axis=1)
+    del padded, body  # (freed before the inverse transform allocates its result)
+    spectrum *= _kernel_spectrum(sigma_samples, radius, n_fft)
     full = sp_fft.irfft(spectrum, n_fft, axis=1)
-    return full[:, kernel.size - 1 : padded.shape[1]].T
+    return full[:, 2 * radius + reflect : 2 * radius + reflect + T].T
+
+
+#: Kernel transforms of recent :func:`_gaussian_smooth` calls, by ``(sigma_samples, radius, n_fft)``.
+_KERNEL_SPECTRA: dict[tuple[float, int, int], NDArray[np.complex128]] = {}
+
+
+def _kernel_spectrum(sigma_samples: float, radius: int, n_fft: int) -> NDArray[np.complex128]:
+    """The real FFT ``(n_fft // 2 + 1,)`` of the normalised Gaussian kernel of ``sigma_samples``
+    truncated at ``radius`` samples, zero-padded to ``n_fft``; computed once per key (the fit of
+    one kind of demonstration asks for the same one every time) and kept read-only."""
+    key = (sigma_samples, radius, n_fft)
+    spectrum = _KERNEL_SPECTRA.get(key)
+    if spectrum is None:
+        u = np.arange(-radius, radius + 1, dtype=float)
+        kernel = np.exp(-0.5 * (u / sigma_samples) ** 2)
+        kernel /= kernel.sum()
+        spectrum = sp_fft.rfft(kernel, n_fft)
+        spectrum.flags.writeable = False
+        if len(_KERNEL_SPECTRA) >= 16:
+            _KERNEL_SPECTRA.pop(next(iter(_KERNEL_SPECTRA)))
+        _KERNEL_SPECTRA[key] = spectrum
+    return spectrum
 
 
 def turning_points(x: NDArray, tolerance: float) -> list[int]:
@@ -280,9 +333,25 @@ def noise_level(x: NDArray) -> NDArray:
     smoothing left (≈ 0 for clean data)."""
     if x.shape[0] < 3:
         return np.zeros(x.shape[1])
-    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-    mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
+    q = x.T  # (D, T): along memory order for the usual column-major x
+    d2 = q[:, 2:] - 2.0 * q[:, 1:-1] + q[:, :-2]
+    if not np.isfinite(d2).all():  # NaN propagates through np.median, not through _row_medians
+        mad = np.median(np.abs(d2 - np.median(d2, axis=1)[:, None]), axis=1)
+    else:
+        mad = _row_medians(np.abs(d2 - _row_medians(d2)[:, None]))
     return mad / (0.6745 * math.sqrt(6.0))
+
+
+def _row_medians(q: NDArray) -> NDArray:
+    """``np.median(q, axis=1)`` of a finite ``q (D, n)``, ``n ≥ 1``, ``(D,)``: the same partition
+    and the same mean of the middle two (``(a + b) / 2``), without np.median's generic handling
+    (NaN checks, axis bookkeeping), which is most of its cost at a few thousand numbers."""
+    n = q.shape[1]
+    half = n // 2
+    if n % 2:
+        return np.partition(q, half, axis=1)[:, half].copy()
+    part = np.partition(q, [half - 1, half], axis=1)
+    return (part[:, half - 1] + part[:, half]) / 2.0
 
 
 class _PrefixSums:
@@ -298,12 +367,18 @@ class _PrefixSums:
         T, D = x.shape
         self.stride = T + 1
         self.rows = np.empty((5, D * (T + 1)))
-        self.rows[:, :: T + 1] = 0.0  # the sum over no sample, before each dimension
-        for d in range(D):
-            x_d, a_d = x[:, d], a[:, d]
-            first = d * (T + 1) + 1
-            for row, term in zip(self.rows, (x_d, x_d * x_d, a_d, a_d * a_d, x_d * a_d), strict=True):
-                np.cumsum(term, out=row[first : first + T])
+        sums = self.rows.reshape(5, D, T + 1)
+        sums[:, :, 0] = 0.0  # the sum over no sample, before each dimension
+        # The five terms of every dimension, (5, D, T), written in place and summed there in one
+        # accumulation along time (sequential, as np.cumsum of each term alone; no temporary).
+        terms = sums[:, :, 1:]
+        x_t, a_t = x.T, a.T
+        terms[0] = x_t
+        np.multiply(x_t, x_t, out=terms[1])
+        terms[2] = a_t
+        np.multiply(a_t, a_t, out=terms[3])
+        np.multiply(x_t, a_t, out=terms[4])
+        np.add.accumulate(terms, axis=2, out=terms)
 
     def line(
         self, d: int, i: int, j: int, x_c: float, v_c: float, x_n: float, v_n: float, k_cap: float
@@ -340,24 +415,39 @@ class _PrefixSums:
         Returns ``(k, sse)`` ``(n,)`` [1/s², unit²/s⁴]. Numpy's per-call cost dominates at the
         sizes of a split search, so the arithmetic is written with as few calls as possible (the
         same operations, in the same order, as :meth:`line`)."""
-        sx, sxx, sa, saa, sxa = self.rows.take(j, axis=1) - self.rows.take(i, axis=1)
+        # (Updated in place where a temporary is not needed again: fewer allocations.)
+        rows = self.rows.take(j, axis=1)
+        sx, sxx, sa, saa, sxa = np.subtract(rows, self.rows.take(i, axis=1), out=rows)
         x_c, vv_c, speed_c = start
         x_n, vv_n, speed_n = end
         n = steps + 1.0
         delta = x_n - x_c
         moving = delta != 0.0
         kappa = kappa * moving
-        safe = delta + ~moving  # Δ, or 1 where Δ = 0
-        c0 = (vv_n - vv_c) / (2.0 * safe)
-        m = 0.5 * (x_c + x_n)
+        safe = np.logical_not(moving, out=moving).astype(float)
+        safe += delta  # Δ, or 1 where Δ = 0
+        c0 = vv_n - vv_c
+        c0 /= 2.0 * safe  # (v_n² − v_c²) / (2Δ)
+        m = x_c + x_n
+        m *= 0.5
         n_c0 = n * c0
-        num = sxa - m * sa - c0 * sx + n_c0 * m
-        den = sxx - 2.0 * m * sx + n * m * m
-        k_ls = num / np.where(den > 0.0, den, 1.0)
-        k_cap = K_MAX_FRACTION * ((speed_c + speed_n) / safe) ** 2 - kappa
-        k = np.minimum(k_ls, k_cap)
+        num = sxa - m * sa
+        num -= c0 * sx
+        num += n_c0 * m  # sxa − m sa − c0 sx + n c0 m
+        den = sxx - 2.0 * m * sx
+        den += n * m * m  # sxx − 2 m sx + n m m
+        k = num / np.where(den > 0.0, den, 1.0)
+        k_cap = speed_c + speed_n
+        k_cap /= safe
+        k_cap *= k_cap
+        k_cap *= K_MAX_FRACTION
+        k_cap -= kappa  # ρ ((|v_c| + |v_n|)/Δ)² − kappa
+        np.minimum(k, k_cap, out=k)
         k = np.where(np.isfinite(k), k, -kappa)
-        sse = saa - 2.0 * c0 * sa + n_c0 * c0 - 2.0 * k * num + k * k * den
+        sse = saa - 2.0 * c0 * sa
+        sse += n_c0 * c0
+        sse -= 2.0 * k * num
+        sse += k * k * den  # saa − 2 c0 sa + n c0 c0 − 2 k num + k k den
         return k, np.maximum(sse, 0.0, out=sse)
 
 
@@ -365,7 +455,8 @@ class _Samples:
     """The smoothed samples of all ``D`` dimensions, laid out for vectorised work across them.
 
     ``t (T,)`` [s], ``dt`` [s]; ``x (D·T,)`` positions [unit] and ``v_knot (D·T,)`` via-point
-    velocities [unit/s] of dimension ``d`` at ``[d·T, (d+1)·T)``; ``sums`` their prefix sums.
+    velocities [unit/s] of dimension ``d`` at ``[d·T, (d+1)·T)``, ``t_all (D·T,)`` [s] their
+    times; ``sums`` their prefix sums.
     For the split search (while ``v_knot`` does not change): ``states (3, D·T)`` the rows ``x``,
     ``v_knot²``, ``|v_knot|``, and ``kappa_of_steps (T,)`` [1/s²] the stability margin
     ``(2μ/T_seg)²`` of a segment ``n`` samples long (:func:`psm.pstf.k_limit`).
@@ -382,6 +473,7 @@ class _Samples:
         np.multiply(self.v_knot, self.v_knot, out=self.states[1])
         np.abs(self.v_knot, out=self.states[2])
         self.kappa_of_steps = (2.0 * min_speed_ratio / np.maximum(np.arange(self.T) * dt, 1e-12)) ** 2
+        self.t_all = np.tile(t, x.shape[1])  # (D·T,): the time of every element of x
         self.sums = _PrefixSums(x, a)
 
 
@@ -399,8 +491,10 @@ class _Segmenter:
         self.x = samples.x[d * T : (d + 1) * T]
         self.v_knot = samples.v_knot[d * T : (d + 1) * T]
         self.min_speed_ratio, self.k_fit = min_speed_ratio, k_fit
-        self._slopes: dict[tuple[int, int, float, float], float] = {}
-        self._lines: dict[tuple[int, int, float, float], tuple[float, ...]] = {}
+        # By (lo, hi): valid while v_knot[lo] and v_knot[hi] stay as they were (:meth:`set_velocities`
+        # drops the entries a velocity change affects).
+        self._slopes: dict[tuple[int, int], float] = {}
+        self._lines: dict[tuple[int, int], tuple[float, ...]] = {}
 
     def boundary(self, lo: int, hi: int) -> tuple[float, float, float, float]:
         """``(x_c, v_c, x_n, v_n)``; a knot velocity pointing against the segment (noise) is 0."""
@@ -417,23 +511,33 @@ class _Segmenter:
 
     def slope(self, lo: int, hi: int) -> float:
         """The segment's ``k`` [1/s²]: least squares (clamped) or the demonstrated duration."""
-        key = (lo, hi, float(self.v_knot[lo]), float(self.v_knot[hi]))
-        if key not in self._slopes:
-            self._slopes[key] = self._slope(lo, hi)
-        return self._slopes[key]
+        k = self._slopes.get((lo, hi))
+        if k is None:
+            k = self._slopes[(lo, hi)] = self._slope(lo, hi)
+        return k
+
+    def set_velocities(self, cuts: NDArray, velocities: NDArray) -> None:
+        """Set ``v_knot`` at the samples ``cuts (n,)`` to ``velocities (n,)`` [unit/s] and forget
+        the lines and slopes of the segments between consecutive cuts that this changes."""
+        changed = (self.v_knot[cuts] != velocities).tolist()
+        self.v_knot[cuts] = velocities
+        bounds = cuts.tolist()
+        for s in range(len(bounds) - 1):
+            if changed[s] or changed[s + 1]:
+                self._lines.pop((bounds[s], bounds[s + 1]), None)
+                self._slopes.pop((bounds[s], bounds[s + 1]), None)
 
     def _line(self, lo: int, hi: int) -> tuple[float, float, float, float, float, float, float]:
         """``(x_c, v_c, x_n, v_n, k_cap, k_ls, sse)`` of the segment: its :meth:`boundary`, the
         stability cap of its slope [1/s²] and the clamped least-squares line fit
         (:meth:`_PrefixSums.line`). The split search asks :meth:`within_budget` first and
         :meth:`slope` after; the line is computed once for both."""
-        key = (lo, hi, float(self.v_knot[lo]), float(self.v_knot[hi]))
-        line = self._lines.get(key)
+        line = self._lines.get((lo, hi))
         if line is None:
             x_c, v_c, x_n, v_n = self.boundary(lo, hi)
             k_cap = k_limit(v_c, v_n, x_n - x_c, self.kappa(lo, hi))
             k_ls, sse = self.sums.line(self.d, lo, hi, x_c, v_c, x_n, v_n, k_cap)
-            line = self._lines[key] = (x_c, v_c, x_n, v_n, k_cap, k_ls, sse)
+            line = self._lines[(lo, hi)] = (x_c, v_c, x_n, v_n, k_cap, k_ls, sse)
         return line
 
     def _slope(self, lo: int, hi: int) -> float:
@@ -459,8 +563,11 @@ class _Segmenter:
         if last < first:
             return np.empty(0, dtype=np.intp)
         x_in = self.x[first : last + 1]
-        ok = (np.abs(x_in - self.x[lo]) >= min_delta) & (np.abs(self.x[hi] - x_in) >= min_delta)
-        cand = np.flatnonzero(ok) + first
+        # min(|x − x_lo|, |x_hi − x|) ≥ min_delta: both halves move enough (NaN fails either way).
+        gap = np.abs(x_in - self.x[lo])
+        np.minimum(gap, np.abs(self.x[hi] - x_in), out=gap)
+        cand = np.flatnonzero(gap >= min_delta)
+        cand += first
         if cand.size > 128:  # at most ~128 evenly spaced candidates
             cand = cand[:: math.ceil(cand.size / 128)]
         return cand
@@ -478,9 +585,12 @@ def _deviations(segments: Sequence[tuple[_Segmenter, int, int]]) -> list[float]:
     if not segments:
         return []
     samples = segments[0][0].samples
-    index = []  # per segment: first sample, step, position in the batch, offset in samples.x
-    params = []  # per segment: x_c, v_c, k, a_c, t_lo, t_end, x_n
+    t = samples.t
+    # Per segment, as floats (integers are exact): base, step (sample ``base + step·j`` of
+    # samples.x is the batch's element j), x_c, v_c, k, a_c, t_lo, t_end, x_n.
+    params = []
     counts = []
+    starts = []  # position of each segment's first sample in the batch
     total = 0
     for seg, lo, hi in segments:
         x_c, v_c, x_n, v_n = seg._line(lo, hi)[:4]  # the boundary, as the budget check found it
@@ -489,19 +599,20 @@ def _deviations(segments: Sequence[tuple[_Segmenter, int, int]]) -> list[float]:
         t_end = time_to_reach(x_c, v_c, x_n, v_n, k)
         step = max(1, (hi - lo) // 32)
         count = (hi - lo) // step + 1
-        index.append((lo, step, total, seg.offset))
-        params.append((x_c, v_c, k, k * x_c + c, float(samples.t[lo]), t_end, x_n))
+        base = lo + seg.offset - step * total
+        params.append((base, step, x_c, v_c, k, k * x_c + c, float(t[lo]), t_end, x_n))
         counts.append(count)
+        starts.append(total)
         total += count
-    lo_s, step_s, start_s, offset_s = np.repeat(np.array(index), counts, axis=0).T
-    x_c, v_c, k, a_c, t_lo, t_end, x_n = np.repeat(np.array(params), counts, axis=0).T
-    i = lo_s + step_s * (np.arange(total) - start_s)  # the samples evaluated, (total,)
-    elapsed = samples.t.take(i) - t_lo
+    base, step, x_c, v_c, k, a_c, t_lo, t_end, x_n = np.repeat(np.array(params), counts, axis=0).T
+    i = (base + step * np.arange(total)).astype(np.intp)  # the samples evaluated in samples.x
+    elapsed = samples.t_all.take(i) - t_lo
     # Past its arrival the PSTF would continue; the chain moves on to the next segment.
     x_model = np.where(elapsed <= t_end, positions_from_acceleration(elapsed, x_c, v_c, k, a_c), x_n)
-    error = np.abs(x_model - samples.x.take(i + offset_s))
+    error = np.subtract(x_model, samples.x.take(i), out=x_model)
+    np.abs(error, out=error)
     # fmax skips NaN samples (a degenerate least-squares k) as max(worst, nan) does; all NaN -> 0.
-    worst = np.fmax.reduceat(error, [row[2] for row in index]).tolist()
+    worst = np.fmax.reduceat(error, starts).tolist()
     return [w if w == w else 0.0 for w in worst]
 
 
@@ -679,7 +790,7 @@ def _chain(segmenter: _Segmenter, cuts: list[int]) -> DimensionFit:
     vel = np.array([b[1] for b in bounds] + [0.0])
     vel[1:-1] = np.where(vel[1:-1] * np.array([b[3] for b in bounds[:-1]]) > 0.0, vel[1:-1], 0.0)
     kappa = np.array([segmenter.kappa(lo, hi) for lo, hi in itertools.pairwise(cuts)])
-    segmenter.v_knot[cut_idx] = vel  # the split search is over: only slope() reads it from here
+    segmenter.set_velocities(cut_idx, vel)  # the split search is over: only slope() reads them now
     k = np.array([segmenter.slope(lo, hi) for lo, hi in itertools.pairwise(cuts)])
     durations = np.array(
         [time_to_reach(knots[s], vel[s], knots[s + 1], vel[s + 1], k[s]) for s in range(k.size)]
