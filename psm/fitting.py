@@ -256,26 +256,13 @@ def _gaussian_smooth(X: NDArray, sigma_samples: float, reflect: int = 0) -> NDAr
     return full[:, 2 * radius + reflect : 2 * radius + reflect + T].T
 
 
-#: Kernel transforms of recent :func:`_gaussian_smooth` calls, by ``(sigma_samples, radius, n_fft)``.
-_KERNEL_SPECTRA: dict[tuple[float, int, int], NDArray[np.complex128]] = {}
-
-
 def _kernel_spectrum(sigma_samples: float, radius: int, n_fft: int) -> NDArray[np.complex128]:
     """The real FFT ``(n_fft // 2 + 1,)`` of the normalised Gaussian kernel of ``sigma_samples``
-    truncated at ``radius`` samples, zero-padded to ``n_fft``; computed once per key (the fit of
-    one kind of demonstration asks for the same one every time) and kept read-only."""
-    key = (sigma_samples, radius, n_fft)
-    spectrum = _KERNEL_SPECTRA.get(key)
-    if spectrum is None:
-        u = np.arange(-radius, radius + 1, dtype=float)
-        kernel = np.exp(-0.5 * (u / sigma_samples) ** 2)
-        kernel /= kernel.sum()
-        spectrum = sp_fft.rfft(kernel, n_fft)
-        spectrum.flags.writeable = False
-        if len(_KERNEL_SPECTRA) >= 16:
-            _KERNEL_SPECTRA.pop(next(iter(_KERNEL_SPECTRA)))
-        _KERNEL_SPECTRA[key] = spectrum
-    return spectrum
+    truncated at ``radius`` samples, zero-padded to ``n_fft``."""
+    u = np.arange(-radius, radius + 1, dtype=float)
+    kernel = np.exp(-0.5 * (u / sigma_samples) ** 2)
+    kernel /= kernel.sum()
+    return sp_fft.rfft(kernel, n_fft)
 
 
 def turning_points(x: NDArray, tolerance: float) -> list[int]:
