@@ -25,11 +25,11 @@ if str(ROOT) not in sys.path:
 from services.arm.demos import build_demos  # noqa: E402
 from services.arm.teach import (  # noqa: E402
     TeachConfig,
-    extract_ee_trajectory,
     teach,
     write_teach_mcap,
 )
 from services.robot.model import RobotModel  # noqa: E402
+from services.robot.recordings import ee_trajectory  # noqa: E402
 from services.tasks.feeding import load_feeding  # noqa: E402
 
 QUANTIZE_BITS = 20
@@ -63,7 +63,7 @@ def generate(out_dir: Path, names: list[str] | None = None, scene: Path | None =
             quantize_bits=QUANTIZE_BITS,
         )
         written.append(path)
-        t, X = extract_ee_trajectory(path, robot)
+        t, X = ee_trajectory(path, robot)
         V = (X[2:] - X[:-2]) / (t[2:] - t[:-2])[:, None]
         rows.append(
             f"| `{name}.mcap` | {spec.description} | "

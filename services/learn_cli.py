@@ -52,13 +52,13 @@ def load_demonstration(
     if suffix == ".csv":
         return _load_csv(path, columns)
     if suffix == ".mcap":
-        from services.arm.demos import trajectory_from_recording
         from services.bus.log import LogReadError, scan_log
+        from services.robot.recordings import ee_trajectory
 
         scan = scan_log(path)  # LogReadError if it is not MCAP at all
         if not scan.complete:  # never learn from the first part of a motion
             raise LogReadError(f"{path}: {scan.problem}")
-        t, X = trajectory_from_recording(path, topic=topic)
+        t, X = ee_trajectory(path, topic=topic)
         return t, X, ["x", "y", "z"]
     raise DemonstrationError(f"{path}: unknown demonstration format '{suffix}' (use .csv, .npz or .mcap)")
 

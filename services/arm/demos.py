@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.arm.teach import Tremor, ViaPointPath, extract_ee_trajectory
+from services.arm.teach import Tremor, ViaPointPath
 from services.tasks.feeding import FeedingScene, Vec3, load_feeding
 
 
@@ -147,10 +147,3 @@ def load_demos(path: str | Path | None = None) -> dict[str, DemoSpec]:
             :func:`~services.tasks.feeding.load_feeding`.
     """
     return build_demos(load_feeding(path).scene)
-
-
-def trajectory_from_recording(path: str | Path, *, topic: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """End-effector trajectory ``t (T,)`` s, ``X (T, 3)`` m of a recording (``psm teach`` or
-    any run of the arm), by forward kinematics from the recorded joint positions; see
-    :func:`services.arm.teach.extract_ee_trajectory`. Used by ``psm learn DEMO.mcap``."""
-    return extract_ee_trajectory(path, topic=topic)

@@ -7,7 +7,8 @@ recorded to MCAP at the control rate (500 Hz by default), like the paper's teach
 * :func:`teach` — simulate the guided arm (the "person" is a stiff Cartesian PD on the path,
   realised through the arm's own IK controller and limits) and return the :class:`ArmSnapshot`
   sequence; :func:`write_teach_mcap` writes it with the bus's message types, keys and schemas.
-* :func:`extract_ee_trajectory` — read a recording back and compute the end-effector trajectory
+* reading a recording back into the end-effector trajectory is
+  :func:`services.robot.recordings.ee_trajectory`
   ``t (T,), X (T, 3)`` by forward kinematics from the recorded joint positions (as the paper
   does; the published EE pose is not used).
 
@@ -28,10 +29,8 @@ import numpy as np
 from services.arm.sim import ArmSim, ArmSimConfig, ArmSnapshot
 from services.robot.model import RobotModel
 from services.robot.protocol import Command, CommandMode, frame_transforms, state_message
+from services.robot.recordings import TEACH_METADATA
 from services.robot.rotations import quat_xyzw_from_matrix
-
-#: Metadata record written into every teach recording.
-TEACH_METADATA = "psm.teach"
 
 
 class Path3D(Protocol):
@@ -392,57 +391,6 @@ def write_teach_mcap(
         w.close()
     return out
 
-
-def extract_ee_trajectory(
-    path: str | Path,
-    robot: RobotModel | None = None,
-    *,
-    topic: str | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """End-effector trajectory of a recording by forward kinematics from its joint states.
-
-    Args:
-        path: MCAP file (from ``psm teach`` or ``psm record``).
-        robot: robot model; default the Panda with the EE frame stored in the recording's
-            ``psm.teach`` metadata (else ``panda_hand_tcp``).
-        topic: the ArmState key (default: every key ending in ``/arm/state``).
-
-    Returns:
-        ``t (T,)`` seconds from the first state (sim time), ``X (T, 3)`` metres, base frame.
-        Duplicate ticks (a lockstep arm re-offering state 0) are dropped; samples are sorted
-        by tick.
-
-    Raises:
-        ValueError: no ArmState in the file, or joints that do not match the robot.
-    """
-    from services.bus.log import read_log, read_metadata
-    from services.bus.messages import ArmState
-
-    if robot is None:
-        meta = read_metadata(path).get(TEACH_METADATA, {})
-        robot = RobotModel.load(ee_frame=meta.get("ee_frame") or None)
-    ticks: dict[int, tuple[int, list[float]]] = {}
-    names: list[str] | None = None
-    for key, msg, _ in read_log(path, topic):
-        if not isinstance(msg, ArmState) or (topic is None and not key.endswith("/arm/state")):
-            continue
-        if names is None:
-            names = list(msg.joint_names)
-        if msg.tick not in ticks:
-            ticks[msg.tick] = (msg.sim_time_ns, list(msg.q))
-    if not ticks:
-        raise ValueError(f"{path}: no ArmState messages")
-    if names and tuple(names) != robot.joint_names:
-        raise ValueError(
-            f"{path}: recorded joints {names} do not match the robot's {list(robot.joint_names)}"
-        )
-    order = sorted(ticks)
-    t_ns = np.array([ticks[k][0] for k in order], dtype=np.int64)
-    Q = np.array([ticks[k][1] for k in order], dtype=float)
-    if Q.shape[1] != robot.n:
-        raise ValueError(f"{path}: states have {Q.shape[1]} joints, robot has {robot.n}")
-    t = (t_ns - t_ns[0]) * 1e-9
-    return t, robot.fk_positions(Q)
 
 
 def load_path_file(path: str | Path) -> Path3D:

@@ -5,7 +5,9 @@
 * :mod:`services.robot.rotations` — quaternion ``(x, y, z, w)`` ↔ rotation matrix (scipy);
 * :mod:`services.robot.protocol` — the arm's bus protocol: ``ArmState``/``ArmCommand`` builders
   and parsers and the decoded types (:class:`Command`, :class:`CommandMode`,
-  :class:`ArmStateData`, :class:`EEState`), free of Pinocchio and of the arm simulator.
+  :class:`ArmStateData`, :class:`EEState`), free of Pinocchio and of the arm simulator;
+* :mod:`services.robot.recordings` — a recording's end-effector trajectory by forward
+  kinematics (what ``psm learn`` and the planner learn from).
 
 The names below are importable from ``services.robot`` directly; each submodule is imported on
 first use, so ``from services.robot import cartesian_command`` does not load Pinocchio.
@@ -40,6 +42,7 @@ if TYPE_CHECKING:
         state_from_message,
         state_message,
     )
+    from services.robot.recordings import TEACH_METADATA, ee_trajectory
     from services.robot.rotations import matrix_from_quat_xyzw, quat_xyzw_from_matrix
 
 __all__ = [
@@ -47,6 +50,7 @@ __all__ = [
     "PANDA_EE_FRAME",
     "PANDA_LOCKED_JOINTS",
     "PANDA_NAMED_POSES",
+    "TEACH_METADATA",
     "ArmStateData",
     "Command",
     "CommandMode",
@@ -57,6 +61,7 @@ __all__ = [
     "StateLike",
     "cartesian_command",
     "command_from_message",
+    "ee_trajectory",
     "frame_transforms",
     "joint_command",
     "matrix_from_quat_xyzw",
@@ -87,6 +92,8 @@ _EXPORTS: dict[str, str] = {
     "joint_command": "protocol",
     "state_from_message": "protocol",
     "state_message": "protocol",
+    "TEACH_METADATA": "recordings",
+    "ee_trajectory": "recordings",
     "matrix_from_quat_xyzw": "rotations",
     "quat_xyzw_from_matrix": "rotations",
 }

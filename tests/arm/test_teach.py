@@ -12,14 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.arm.demos import build_demos, load_demos, trajectory_from_recording
+from services.arm.demos import build_demos, load_demos
 from services.arm.teach import (
-    TEACH_METADATA,
     RecordedPath,
     TeachConfig,
     Tremor,
     ViaPointPath,
-    extract_ee_trajectory,
     load_path_file,
     teach,
     write_teach_mcap,
@@ -27,6 +25,7 @@ from services.arm.teach import (
 from services.bus.log import read_log, read_metadata
 from services.bus.messages import ArmState, FrameTransforms
 from services.robot.model import RobotModel
+from services.robot.recordings import TEACH_METADATA, ee_trajectory
 from services.tasks.feeding import load_feeding
 
 from .conftest import ROOT
@@ -99,7 +98,7 @@ def test_teach_record_and_extract(robot: RobotModel, tmp_path: Path) -> None:
     meta = read_metadata(out)[TEACH_METADATA]
     assert meta["task"] == "t1" and meta["ee_frame"] == "panda_hand_tcp"
     assert float(meta["rate_hz"]) == pytest.approx(500.0)
-    t, X = extract_ee_trajectory(out)
+    t, X = ee_trajectory(out)
     np.testing.assert_allclose(np.diff(t), 0.002, atol=1e-12)
     # FK from joints equals the published EE pose; the arm follows the guided path.
     P = np.array([[s.ee_position.x, s.ee_position.y, s.ee_position.z] for s in states])
@@ -115,7 +114,7 @@ def test_extract_rejects_non_arm_files(tmp_path: Path) -> None:
     sink = McapSink(tmp_path / "empty.mcap")
     sink.close()
     with pytest.raises(ValueError, match="no ArmState"):
-        extract_ee_trajectory(tmp_path / "empty.mcap")
+        ee_trajectory(tmp_path / "empty.mcap")
 
 
 def test_path_files(tmp_path: Path) -> None:
@@ -159,7 +158,7 @@ def test_teach_cli(tmp_path: Path) -> None:
         timeout=120,
     )
     assert proc.returncode == 0, proc.stderr
-    t, X = extract_ee_trajectory(out)
+    t, X = ee_trajectory(out)
     np.testing.assert_allclose(X[-1], [0.45, 0.05, 0.35], atol=5e-4)
     assert t[-1] == pytest.approx(0.3 + 0.6 + 0.5, abs=0.003)
 
@@ -169,7 +168,7 @@ def test_committed_demos(name: str) -> None:
     path = DEMO_DIR / f"{name}.mcap"
     assert path.stat().st_size < 512 * 1024
     spec = DEMOS[name]
-    t, X = trajectory_from_recording(path)
+    t, X = ee_trajectory(path)
     np.testing.assert_allclose(np.diff(t), 0.002, atol=1e-9)  # 500 Hz like the paper
     np.testing.assert_allclose(X[0], spec.points[0], atol=1e-3)
     np.testing.assert_allclose(X[-1], spec.goal, atol=1e-3)
@@ -194,7 +193,7 @@ def test_demos_follow_the_scene() -> None:
 
 
 def test_cylinder_strike_profile() -> None:
-    t, X = trajectory_from_recording(DEMO_DIR / "cylinder_strike.mcap")
+    t, X = ee_trajectory(DEMO_DIR / "cylinder_strike.mcap")
     vy = np.gradient(X[:, 1], t)
     contact = np.argmin(np.abs(X[:, 1] - (-0.10)))
     assert 0.02 < vy[contact] < 0.08  # touches the cylinder slowly
@@ -217,6 +216,6 @@ def test_demos_regenerate_byte_identical(tmp_path: Path) -> None:
 def test_demo_learns_a_psm() -> None:
     from psm import PhaseSpaceModel
 
-    t, X = trajectory_from_recording(DEMO_DIR / "reach_bowl.mcap")
+    t, X = ee_trajectory(DEMO_DIR / "reach_bowl.mcap")
     model = PhaseSpaceModel.fit(t, X)
     np.testing.assert_allclose(model.goal, DEMOS["reach_bowl"].goal, atol=2e-3)
