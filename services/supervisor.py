@@ -51,12 +51,15 @@ _CLK_TCK = os.sysconf("SC_CLK_TCK")
 def bind_to_supervisor() -> None:
     """In a child of a supervisor (``PSM_SUPERVISOR_PID`` set): ask for SIGTERM when the
     parent dies, and exit at once if it already has. A no-op elsewhere."""
-    expected = os.environ.get(SUPERVISOR_PID_ENV)
+    # Taken out of the environment: only the supervisor's own children bind to it, never a
+    # process this one starts.
+    expected = os.environ.pop(SUPERVISOR_PID_ENV, None)
     if not expected or not sys.platform.startswith("linux"):
         return
     with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)
     if str(os.getppid()) != expected:  # the supervisor died before prctl took effect
+        sys.stderr.write(f"supervisor (pid {expected}) is gone; exiting\n")
         os._exit(1)
 
 
