@@ -47,11 +47,10 @@ from typing import Any
 
 from benchmarks.arm import _load, bench_timer
 from services.stack import load_stack
-from services.supervisor import ManagedProcess, StackFailureError, Supervisor, free_port
+from services.supervisor import ManagedProcess, StackFailureError, Supervisor, cpu_seconds, free_port
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
-CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 #: Target (1): the arm at 500 Hz answered by the probe, % of one core.
 ARM_TARGET_PCT = 15.0
@@ -167,16 +166,6 @@ def deployed_rt_priority() -> int:
     return int(load_stack(DEFAULT_STACK).configs["arm"].arm.rt_priority)  # type: ignore[attr-defined]
 
 
-def _cpu_ticks(pid: int) -> int:
-    """utime + stime of a process, clock ticks (0 if it is gone)."""
-    try:
-        with open(f"/proc/{pid}/stat") as fh:
-            fields = fh.read().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0
-    return int(fields[11]) + int(fields[12])
-
-
 def run_scenario(
     name: str, seconds: float, warmup_s: float, fps: float, rt_priority: int = 0
 ) -> dict[str, Any]:
@@ -198,12 +187,12 @@ def run_scenario(
             time.sleep(warmup_s + 2.0)
             pids = {n: p.pid for n, p in stack.procs.items()}
             pids["bare timer"] = timer.pid
-            before = {n: _cpu_ticks(pid) for n, pid in pids.items()}
+            before = {n: cpu_seconds(pid) or 0.0 for n, pid in pids.items()}
             load_before = _load()
             t0 = time.monotonic()
             time.sleep(seconds)
             window = time.monotonic() - t0
-            after = {n: _cpu_ticks(pid) for n, pid in pids.items()}
+            after = {n: cpu_seconds(pid) or 0.0 for n, pid in pids.items()}
             load_after = _load()
             alive = {n: p.poll() is None for n, p in stack.procs.items()}
             remaining = loop_s - (time.monotonic() - t_arm)
@@ -213,7 +202,7 @@ def run_scenario(
             stack.stop()
             if timer.wait(30) is None:
                 timer.stop(5)
-        cpu = {n: round(100.0 * (after[n] - before[n]) / CLK_TCK / window, 1) for n in pids}
+        cpu = {n: round(100.0 * (after[n] - before[n]) / window, 1) for n in pids}
         arm = json.loads(stack.arm_stats.read_text()) if stack.arm_stats.exists() else {}
         ref = json.loads(timer_out.read_text()) if timer_out.exists() else {}
         logs = {n: (workdir / f"{n}.log").read_text(errors="replace")[-2000:] for n in stack.procs}

@@ -38,6 +38,7 @@ __all__ = [
     "StackFailureError",
     "Supervisor",
     "bind_to_supervisor",
+    "cpu_seconds",
     "free_port",
     "psm_argv",
 ]

@@ -316,6 +316,8 @@ def config_error(exc: ValidationError) -> ConfigError:
         path += f"[{part}]" if isinstance(part, int) else (f".{part}" if path else str(part))
     if err["type"] == "extra_forbidden":
         return ConfigError(path, "unknown field")
+    if err["type"] == "missing":
+        return ConfigError(path, "missing")
     ctx_error = err.get("ctx", {}).get("error")
     if isinstance(ctx_error, ConfigError):
         return ConfigError(".".join(p for p in (path, ctx_error.path) if p), ctx_error.reason)

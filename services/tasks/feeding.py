@@ -16,18 +16,19 @@ z = 0, x forward, y to the robot's left)::
 
 :func:`load_feeding` validates it at load (unknown keys, missing keys, a position that is not
 three finite numbers, an empty sequence) and raises :class:`FeedingConfigError` with one line
-naming the field, e.g. ``configs/feeding.toml: scene.spoon: expected 3 finite numbers (m), got
-[0.5, -0.25]``.
+naming the field (as :func:`~services.bus.config.config_error` names it), e.g.
+``configs/feeding.toml: scene.spoon: expected 3 finite numbers (m), got [0.5, -0.25]``.
 """
 
 from __future__ import annotations
 
 import math
-import tomllib
 from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
+
+from services.bus.config import ConfigError, config_error, read_toml
 
 #: The feeding configuration shipped with the repository.
 DEFAULT_FEEDING_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "feeding.toml"
@@ -113,21 +114,6 @@ class FeedingConfig(BaseModel):
     task: FeedingTask
 
 
-def _first_error(exc: ValidationError) -> str:
-    """One line for the first validation error: ``field.path: message``."""
-    err = exc.errors()[0]
-    loc = ".".join(str(p) for p in err["loc"]) or "(file)"
-    msg = str(err["msg"]).removeprefix("Value error, ")
-    if err["type"] == "missing":
-        msg = "missing"
-    elif err["type"] == "extra_forbidden":
-        msg = "unknown key"
-    elif err["type"] != "value_error" and "input" in err:
-        msg = f"{msg[:1].lower()}{msg[1:]}, got {err['input']!r}"
-    more = exc.error_count() - 1
-    return f"{loc}: {msg}" + (f" (and {more} more error{'s' if more > 1 else ''})" if more else "")
-
-
 def parse_feeding(data: dict[str, Any], source: str = "feeding config") -> FeedingConfig:
     """Validate an already parsed TOML document.
 
@@ -137,7 +123,8 @@ def parse_feeding(data: dict[str, Any], source: str = "feeding config") -> Feedi
     try:
         return FeedingConfig.model_validate(data)
     except ValidationError as exc:
-        raise FeedingConfigError(f"{source}: {_first_error(exc)}") from None
+        err = config_error(exc)
+        raise FeedingConfigError(f"{source}: {err.path}: {err.reason}") from None
 
 
 def load_feeding(path: str | Path | None = None) -> FeedingConfig:
@@ -148,11 +135,12 @@ def load_feeding(path: str | Path | None = None) -> FeedingConfig:
         FeedingConfigError: not TOML, or a field is missing, unknown or invalid.
     """
     p = DEFAULT_FEEDING_CONFIG if path is None else Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"{p}: no such file")
     try:
-        with p.open("rb") as f:
-            data = tomllib.load(f)
-    except tomllib.TOMLDecodeError as exc:
-        raise FeedingConfigError(f"{p}: invalid TOML: {exc}") from None
+        data = read_toml(p)
+    except ConfigError as exc:
+        raise FeedingConfigError(exc.reason) from None
     return parse_feeding(data, str(p))
 
 

@@ -37,9 +37,10 @@ def test_shipped_config_loads() -> None:
         ("bowl = [0.55, 0.20, 0.10]", "bowl = [0.55, nan, 0.10]", r"scene\.bowl: expected 3 finite numbers"),
         ("bowl = [0.55, 0.20, 0.10]", "bowl = [0.55, true, 0.10]", r"scene\.bowl: expected 3 finite numbers"),
         ("person = [0.35, 0.50, 0.45]", "persn = [0.35, 0.50, 0.45]", r"scene\.person: missing"),
-        ('frame_id = "base"', 'frame_id = "base"\ntable = 1', r"scene\.table: unknown key"),
+        ('frame_id = "base"', 'frame_id = "base"\ntable = 1', r"scene\.table: unknown field"),
         ('sequence = ["grasp_spoon",', 'sequence = [] #', r"task\.sequence: must name at least one sub-task"),
-        ('sequence = ["grasp_spoon",', "sequence = 3 #", r"task\.sequence: input should be a valid tuple"),
+        ('sequence = ["grasp_spoon",', "sequence = 3 #",
+         r"task\.sequence: Input should be a valid tuple \(got 3\)"),
         ("[task]", "[task", r"invalid TOML"),
     ],
 )
