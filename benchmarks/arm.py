@@ -33,7 +33,6 @@ raw zenoh ping-pong bound (1 / round-trip p50 on the same transport).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import platform
@@ -89,11 +88,8 @@ def _cpu_share(before: list[int], after: list[int]) -> dict[str, float]:
 
 def bench_timer(seconds: float, period_s: float = 0.001, spin: bool = False) -> dict[str, Any]:
     """Platform reference: a Python loop doing nothing but waiting for a deadline every
-    ``period_s`` (the same timed wait on the arm's command inbox, or busy-waiting with
-    ``spin``), lateness in µs."""
-    from services.arm.service import command_inbox
-
-    q = command_inbox()
+    ``period_s`` (the realtime arm's wait, ``time.sleep`` until the deadline, or busy-waiting
+    with ``spin``), lateness in µs."""
     period = int(period_s * 1e9)
     n = int(seconds / period_s)
     late = np.empty(n)
@@ -107,8 +103,7 @@ def bench_timer(seconds: float, period_s: float = 0.001, spin: bool = False) -> 
         else:
             remaining = deadline - clock()
             if remaining > 0:
-                with contextlib.suppress(queue.Empty):
-                    q.get(timeout=remaining * 1e-9)
+                time.sleep(remaining * 1e-9)
         late[k] = clock() - deadline
     out = _pct(late / 1e3)
     out["over_1ms"] = int((late > 1e6).sum())

@@ -17,7 +17,7 @@ b. **stack**: router, arm, probe, ``psm camera synth`` (30 fps, wall clock), ``p
 CPU is read per process from ``/proc/<pid>/stat`` (utime + stime) over a measurement window
 after a warm-up, as % of one core: robust against the other jobs sharing the machine, unlike
 wall-clock rates. In each scenario a **bare timer loop** (its own process, doing nothing but
-waiting for 2 ms deadlines on the same kind of timed queue wait as the arm, see
+waiting for 2 ms deadlines with the same ``time.sleep`` as the realtime arm, see
 :func:`benchmarks.arm.bench_timer`) runs for the same time as the arm's loop: its CPU and its
 deadlines missed by more than 2 ms are the platform reference for the arm's missed ticks (ticks
 not published within one dt of their schedule).

@@ -22,6 +22,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.bus.cli",
     "services.arm.cli",
     "services.goal_tracker.cli",
+    "services.planner.cli",
 )
 
 

@@ -86,6 +86,7 @@ COMMANDS: dict[tuple[str, ...], Command] = {
     ("arm", "probe"): Command("services.bus.config:ServiceConfig", "probe"),
     ("camera", "synth"): Command("services.goal_tracker.config:TrackerConfig", "camera_synth"),
     ("track",): Command("services.goal_tracker.config:TrackerConfig", "goal_tracker"),
+    ("plan",): Command("services.planner.config:PlannerConfig", "planner"),
     ("record",): Command("services.bus.recorder:RecorderConfig", "recorder"),
     ("replay",): Command("services.bus.replayer:ReplayerConfig", "replayer"),
     ("echo",): Command("services.bus.echo:EchoConfig", "echo"),
@@ -118,6 +119,9 @@ class ProcessSpec(Section):
         "", description="liveliness name the process declares ('' = the command's, else the name)"
     )
     enabled: bool = Field(True, description="false: described but not started")
+    ends_stack: bool = Field(
+        False, description="when this process exits with code 0 the whole stack stops (e.g. the task is done)"
+    )
 
     def check(self) -> None:
         """The command is one a stack can run."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import json
 import os
 import signal
 import socket
@@ -239,16 +240,25 @@ class _Row:
     rates: tuple[float, float] = (0.0, 0.0)  #: (received/s, published/s)
     cpu_base: tuple[float, float] | None = None  #: (wall time, cpu seconds)
     cpu_pct: float = 0.0
+    ends_stack: bool = False  #: its clean exit ends the run
 
 
 @dataclass
 class Summary:
-    """The end of a stack run."""
+    """The end of a stack run: per process, the recording, and — when the stack ran a task —
+    the task's figures (the planner's last completion event) and the arm's loop statistics."""
 
     rows: list[dict[str, Any]] = field(default_factory=list)
     recording: str = ""
     reason: str = ""
     ok: bool = True
+    task: dict[str, Any] | None = None
+    arm: dict[str, Any] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able form (``<run_dir>/summary.json``)."""
+        return {"reason": self.reason, "ok": self.ok, "recording": self.recording,
+                "processes": self.rows, "task": self.task, "arm": self.arm}
 
 
 class Supervisor:
@@ -274,13 +284,15 @@ class Supervisor:
         self._alive: set[str] = set()
         self.stop_event = threading.Event()
         self._stop_reason = ""
+        self.planner_status: Any = None  #: the latest PlannerStatus, if a planner runs
+        self.task_summary: dict[str, Any] | None = None  #: from the task's completion event
 
     # ------------------------------------------------------------------ start
     def _say(self, text: str) -> None:
         print(text, file=self.out, flush=True)
 
     def _open_session(self) -> None:
-        from services.bus.messages import Keys, ServiceStatus, decode
+        from services.bus.messages import Keys, PlannerStatus, ServiceStatus, TaskEvent, decode
         from services.bus.runtime import open_session
 
         self.session = open_session(self.cfg.zenoh)
@@ -316,10 +328,25 @@ class Supervisor:
                         elif row.rate_base is None:
                             row.rate_base = counts
 
+        def on_planner(sample: Any) -> None:
+            with contextlib.suppress(ValueError):
+                msg = decode(sample.payload.to_bytes(), str(sample.encoding), PlannerStatus)
+                with self._lock:
+                    self.planner_status = msg
+
+        def on_event(sample: Any) -> None:
+            with contextlib.suppress(ValueError):
+                msg = decode(sample.payload.to_bytes(), str(sample.encoding), TaskEvent)
+                if msg.kind in (TaskEvent.COMPLETED, TaskEvent.ABORTED) and msg.summary_json:
+                    with self._lock:
+                        self.task_summary = json.loads(msg.summary_json)
+
         self._token_sub = self.session.liveliness().declare_subscriber(
             keys.liveliness_all.key, on_token, history=True
         )
         self._status_sub = self.session.declare_subscriber(keys.status_all.key, on_status)
+        self._planner_sub = self.session.declare_subscriber(keys.planner_status.key, on_planner)
+        self._event_sub = self.session.declare_subscriber(keys.task_events.key, on_event)
 
     def _router_endpoint(self, name: str) -> tuple[str, int] | None:
         cfg = self.stack.configs[name]
@@ -381,7 +408,7 @@ class Supervisor:
                         )
             argv = psm_argv([*spec.command, "--config", config])
             proc = ManagedProcess(spec.name, argv, self.run_dir / f"{spec.name}.log", env=self.env)
-            row = _Row(spec.name, spec.service_name, proc)
+            row = _Row(spec.name, spec.service_name, proc, ends_stack=spec.ends_stack)
             with self._lock:
                 self.rows.append(row)
             self._wait_ready(row)
@@ -392,6 +419,9 @@ class Supervisor:
     def _check_children(self) -> None:
         for row in self.rows:
             if not row.proc.alive():
+                if row.ends_stack and row.proc.returncode == 0:
+                    self.stop(f"{row.name} finished")
+                    return
                 raise StackFailureError(self._died(row, "died"))
 
     def _update_cpu(self) -> None:
@@ -411,7 +441,8 @@ class Supervisor:
         from services.bus.messages import ServiceStatus
 
         c = self.cfg
-        t = Table(title=f"stack {c.stack.name} · prefix {c.prefix} · clock {c.clock}")
+        t = Table(title=f"stack {c.stack.name} · prefix {c.prefix} · clock {c.clock}",
+                  caption=self.task_line())
         numeric = ("pid", "in/s", "out/s", "CPU %", "rejected", "errors")
         for col in ("service", "pid", *numeric[1:], "state", "last error"):
             t.add_column(col, justify="right" if col in numeric else "left")
@@ -428,6 +459,21 @@ class Supervisor:
                     state, (st.last_error[:60] if st else ""),
                 )
         return t
+
+    def task_line(self) -> str:
+        """One line on the task's progress (from the planner's status), ``""`` without one."""
+        from services.bus.messages import PlannerStatus
+
+        with self._lock:
+            ps = self.planner_status
+        if ps is None:
+            return ""
+        state = PlannerStatus.State.Name(ps.state)
+        line = (f"task {ps.task} · step {ps.step_index + 1}/{ps.step_count} {ps.step} · {state}"
+                f" · {ps.distance_to_goal_m:.3f} m to {ps.goal_name or 'goal'} · {ps.speed_mps:.2f} m/s")
+        if ps.detail:
+            line += f" · {ps.detail}"
+        return line
 
     def run(self, duration_s: float | None = None) -> None:
         """Watch the stack until ``duration_s`` (``None``: until a signal or :meth:`stop`)."""
@@ -484,6 +530,16 @@ class Supervisor:
             rec = getattr(self.stack.configs[spec.name], "recorder", None)
             if tuple(spec.command[:1]) == ("record",) and rec is not None and spec.name in codes:
                 summary.recording = rec.output
+        for name, cfg in self.stack.configs.items():
+            planner = getattr(cfg, "planner", None)
+            arm = getattr(cfg, "arm", None)
+            if planner is not None and planner.summary_file and name in codes:
+                summary.task = _read_json(planner.summary_file) or summary.task
+            if arm is not None and getattr(arm, "stats_file", "") and name in codes:
+                summary.arm = _read_json(arm.stats_file)
+        if summary.task is None:
+            with self._lock:
+                summary.task = self.task_summary
         if self.session is not None:
             with contextlib.suppress(Exception):
                 self.session.close()
@@ -503,9 +559,72 @@ class Supervisor:
             t.add_row(r["service"], f"{r['uptime_s']:.1f}", *counts, str(r["exit_code"]))
         console = Console(file=self.out, width=max(100, Console(file=self.out).width))
         console.print(t)
+        if summary.task is not None:
+            console.print(task_table(summary.task))
+        if summary.arm is not None:
+            console.print(arm_line(summary.arm))
+        path = self.run_dir / "summary.json"
+        with contextlib.suppress(OSError):
+            path.write_text(json.dumps(summary.to_dict(), indent=2, default=str))
+            console.print(f"summary: {path}")
         if summary.recording:
             console.print(f"recording: {summary.recording}")
         console.print(f"logs: {self.run_dir}/")
+
+
+def _read_json(path: str) -> dict[str, Any] | None:
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _num(value: Any, fmt: str) -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+def task_table(task: dict[str, Any]) -> Any:
+    """The per-step table of a task summary (``TaskRunner.summary``) as a ``rich`` Table."""
+    from rich.table import Table
+
+    why = f"{task.get('state')}: {task.get('detail')}"
+    ok = "succeeded" if task.get("success") else f"did not succeed ({why})"
+    done = f"{task.get('steps_succeeded')}/{task.get('steps_total')} steps"
+    t = Table(title=f"task {task.get('task')}: {done}, {ok}, {_num(task.get('duration_s'), '.2f')} s")
+    cols = ("step", "outcome", "duration s", "pos err mm", "vel err mm/s", "peak m/s", "× demo", "peak m/s²",
+            "orient err °")
+    for col in cols:
+        t.add_column(col, justify="left" if col in ("step", "outcome") else "right")
+    for s in task.get("steps", []):
+        pe, ve = s.get("position_error_m"), s.get("velocity_error_mps")
+        t.add_row(
+            s.get("step", ""), s.get("outcome", ""), _num(s.get("duration_s"), ".2f"),
+            _num(None if pe is None else 1e3 * pe, ".1f"), _num(None if ve is None else 1e3 * ve, ".1f"),
+            _num(s.get("peak_speed_mps"), ".3f"), _num(s.get("peak_speed_ratio"), ".2f"),
+            _num(s.get("peak_accel_mps2"), ".2f"), _num(s.get("max_orientation_error_deg"), ".2f"),
+        )
+    lat = (task.get("planner") or {}).get("latency_us")
+    if lat:
+        t.caption = (f"planner state→command latency p50 {lat['p50']:.0f} µs, p99 {lat['p99']:.0f} µs, "
+                     f"max {lat['max']:.0f} µs over {lat['n']} states")
+    return t
+
+
+def arm_line(arm: dict[str, Any]) -> str:
+    """One line of the arm's loop statistics (its ``stats_file``)."""
+    lat = arm.get("state_to_command_latency") or {}
+    jit = arm.get("jitter") or {}
+    parts = [f"arm ({arm.get('clock')}): {arm.get('ticks')} ticks, {arm.get('ticks_per_s', 0):.0f}/s"]
+    if arm.get("clock") == "realtime":
+        parts.append(f"missed {arm.get('missed_ticks')}, late commands {arm.get('late_commands')}, "
+                     f"publication jitter p99 {jit.get('p99_us', 0):.0f} µs")
+    else:
+        parts.append(f"lockstep timeouts {arm.get('lockstep_timeouts')}")
+    if lat:
+        parts.append(f"state→command at the arm p50 {lat.get('p50_us', 0):.0f} µs, "
+                     f"p99 {lat.get('p99_us', 0):.0f} µs")
+    return " · ".join(parts)
 
 
 def run_stack(

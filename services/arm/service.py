@@ -19,8 +19,13 @@ Clock modes (the stack's ``clock``; ``docs/architecture.md``, *Time and the cont
   it (counted in ``lockstep_timeouts``) and ticks at wall-clock pace until commands return, so
   the watchdog brakes the arm promptly when the planner stops.
 
-Commands are received on Zenoh's thread, queued as raw bytes and decoded/validated on the loop
-thread, so the simulation is single-threaded.
+Threads: in ``realtime`` a command is decoded, validated and — when it answers the state just
+published — stepped on Zenoh's receive thread, under the arm's lock, as soon as it arrives; the
+loop thread only sleeps until each tick's schedule, steps itself when no answer came in time
+(held command or brake), and publishes. One wake-up per tick on the loop thread and none for the
+hand-off is what keeps a 500 Hz Python loop cheap. In ``lockstep`` commands are queued as raw
+bytes and handled on the loop thread. Either way the simulation is only ever touched by one
+thread at a time.
 """
 
 from __future__ import annotations
@@ -159,6 +164,11 @@ class ArmService(ServiceApp):
         self.dt_ns = section.dt_ns
         self.stats = LoopStats()
         self._inbox = command_inbox()
+        #: Realtime: guards the simulation between the loop thread and Zenoh's receive thread.
+        self._lock = threading.Lock()
+        #: Realtime: commands are handled (and stepped) on Zenoh's thread while this is set.
+        self._direct = False
+        self._published_tick = -1  # tick of the last published state
         self._pub_ns = np.zeros(_PUB_RING, dtype=np.int64)
         self._pub_tick = np.full(_PUB_RING, -1, dtype=np.int64)
         self._answered = -1  # highest tick for which an answer has been seen
@@ -173,6 +183,9 @@ class ArmService(ServiceApp):
         self._joint_names = list(self.robot.joint_names)
         self._frames = self.robot.body_frame_ids()
         rate = section.transforms_rate_hz
+        # Before the bus opens, so that Zenoh's threads (which step the realtime arm when a
+        # command arrives) inherit the scheduling class.
+        self._rt_problem = set_realtime_priority(section.rt_priority)
         self._tf_every = max(1, round(1e9 / (rate * self.dt_ns))) if rate > 0 else 0
 
     def setup(self, svc: Service) -> None:
@@ -181,9 +194,8 @@ class ArmService(ServiceApp):
 
         self.svc = svc
         self.keys = svc.keys
-        problem = set_realtime_priority(self.config.arm.rt_priority)
-        if problem:
-            svc.log.warning(problem + "; running with normal scheduling")
+        if self._rt_problem:
+            svc.log.warning(self._rt_problem + "; running with normal scheduling")
         self._state_pub = svc.publisher(self.keys.arm_state)
         self._tf_pub = svc.publisher(self.keys.arm_transforms) if self._tf_every else None
         self._cmd_key = self.keys.arm_command.key
@@ -197,12 +209,30 @@ class ArmService(ServiceApp):
 
     # ------------------------------------------------------------------ zenoh threads
     def _on_sample(self, sample: Any) -> None:
-        # Zenoh receive thread: only enqueue (decoding happens on the loop thread).
-        self._inbox.put((time.perf_counter_ns(), sample.payload.to_bytes(), str(sample.encoding)))
+        # Zenoh's receive thread. Realtime: handle the command here and, if it answers the
+        # state just published, compute the next state at once; otherwise only enqueue.
+        item = (time.perf_counter_ns(), sample.payload.to_bytes(), str(sample.encoding))
+        if not self._direct:
+            self._inbox.put(item)
+            return
+        with self._lock:
+            if not self._direct:  # the loop stopped while this thread waited for the lock
+                self._inbox.put(item)
+                return
+            tick = self._handle(item)
+            sim = self.sim
+            if tick == sim.tick == self._published_tick and self._may_step():
+                self._advance(1)
 
     def _on_liveliness(self, name: str, alive: bool) -> None:
-        if not alive:
-            self._inbox.put((time.perf_counter_ns(), None, name))
+        if alive:
+            return
+        item = (time.perf_counter_ns(), None, name)
+        if not self._direct:
+            self._inbox.put(item)
+            return
+        with self._lock:
+            self._handle(item)
 
     def _undeclare(self) -> None:
         with contextlib.suppress(Exception):
@@ -286,6 +316,21 @@ class ArmService(ServiceApp):
         self.sim.prepare()
         return now
 
+    def _may_step(self) -> bool:
+        """False once ``max_ticks`` is reached (the loop then publishes that state and stops)."""
+        max_ticks = self.config.arm.max_ticks
+        return max_ticks <= 0 or self.sim.tick < max_ticks
+
+    def _advance(self, n: int) -> None:
+        """Step ``n`` ticks with the held command (or brake), then encode the new state and do
+        the command-independent work of the step after it. Realtime: called under the lock."""
+        sim = self.sim
+        for _ in range(n):
+            sim.step()
+        self.stats.ticks += n
+        self._encode_current()
+        sim.prepare()
+
     def _drain(self) -> None:
         while True:
             try:
@@ -310,91 +355,82 @@ class ArmService(ServiceApp):
         return self.svc.stop_event.is_set() or (0 < max_ticks <= self.sim.tick)
 
     # ------------------------------------------------------------------ loops
-    def _wait(self, until_ns: int, tick: int) -> bool:
-        """Handle incoming commands until ``until_ns`` (perf_counter ns) or until one answers
-        ``tick`` (``tick < 0``: never stop early). Returns True if ``tick`` was answered."""
-        get = self._inbox.get
-        clock = time.perf_counter_ns
-        while True:
-            remaining = until_ns - clock()
-            if remaining <= 0:
-                return False
-            try:
-                item = get(timeout=remaining * 1e-9)
-            except queue.Empty:
-                return False
-            if self._handle(item) >= tick >= 0:
-                return True
-
     def run_realtime(self) -> None:
         """Realtime loop: state k is published at ``t0 + k·dt`` by the wall clock, stamped
         ``epoch0 + k·dt`` (``epoch0`` = UNIX time at ``t0``).
 
-        The step k → k+1 is computed as soon as the command answering k arrives (or at the
-        deadline ``t0 + (k+1)·dt`` without it: then with the held command or braking), together
-        with state k+1's encoding and the command-independent work for the step after it, and
-        state k+1 is published at its scheduled time, so the publication jitter does not
-        include the computation. A tick whose schedule has passed by a whole period before it
-        could be published (the process was not running in time) is *missed*: the simulation
-        steps through the missed ticks without publishing them (held command, watchdog, limits
-        as usual) and publishes the current tick, so sim time stays locked to the wall clock.
+        The step k → k+1 is computed as soon as the command answering k arrives, on Zenoh's
+        receive thread (:meth:`_on_sample`), together with state k+1's encoding and the
+        command-independent work for the step after it; this thread steps at the deadline
+        ``t0 + (k+1)·dt`` instead when no answer came (held command or braking), and publishes
+        state k+1 at its scheduled time, so the publication jitter does not include the
+        computation. A tick whose schedule has passed by a whole period before it could be
+        published (the process was not running in time) is *missed*: the simulation steps
+        through the missed ticks without publishing them (held command, watchdog, limits as
+        usual) and publishes the current tick, so sim time stays locked to the wall clock.
         Missed ticks are counted, logged (rate-limited) and set the service DEGRADED until
         :data:`DEGRADED_HOLD_S` passes without one.
         """
         sim, stats, period = self.sim, self.stats, self.dt_ns
         clock = time.perf_counter_ns
-        t0 = clock()
-        sim.set_time_origin(time.time_ns())
-        anchor_tick = sim.tick
-        self._encode_current()
-        sim.prepare()
-        while True:
-            sched = t0 + (sim.tick - anchor_tick) * period
-            behind = (clock() - sched) // period
-            if behind > 0:
-                while behind > 0:  # catching up takes time too: until the current tick is due
-                    t0, anchor_tick = self._catch_up(behind, t0, anchor_tick)
-                    sched = t0 + (sim.tick - anchor_tick) * period
-                    behind = (clock() - sched) // period
-            elif self._degraded_since and clock() - self._last_miss_ns > DEGRADED_HOLD_NS:
-                self._degraded_since = 0
-                self.svc.set_degraded(None)
-                self.svc.log.info("realtime recovered: no missed tick for %.1f s", DEGRADED_HOLD_S)
-            self._wait(sched, -1)  # stepped early: hold the state until its time
-            late = self._put_current() - sched
-            stats.add_jitter(late)
-            if late > period:
-                stats.missed_ticks += 1
-            if self._done():
-                break
-            self._wait(sched + period, sim.tick)
+        sleep = time.sleep
+        with self._lock:
+            t0 = clock()
+            sim.set_time_origin(time.time_ns())
+            anchor_tick = k = sim.tick  # k: the next tick to publish
             self._drain()
-            sim.step()
-            stats.ticks += 1
             self._encode_current()
             sim.prepare()
+            self._direct = True
+        try:
+            while True:
+                sched = t0 + (k - anchor_tick) * period
+                behind = (clock() - sched) // period
+                if behind > 0:
+                    while behind > 0:  # catching up takes time too: until the current tick is due
+                        t0, anchor_tick, k = self._catch_up(behind, t0, anchor_tick, k)
+                        sched = t0 + (k - anchor_tick) * period
+                        behind = (clock() - sched) // period
+                elif self._degraded_since and clock() - self._last_miss_ns > DEGRADED_HOLD_NS:
+                    self._degraded_since = 0
+                    self.svc.set_degraded(None)
+                    self.svc.log.info("realtime recovered: no missed tick for %.1f s", DEGRADED_HOLD_S)
+                remaining = sched - clock()
+                if remaining > 0:
+                    sleep(remaining * 1e-9)
+                with self._lock:
+                    if sim.tick < k:  # no answer to the last state in time
+                        self._advance(k - sim.tick)
+                    late = self._put_current() - sched
+                    self._published_tick = sim.tick
+                stats.add_jitter(late)
+                if late > period:
+                    stats.missed_ticks += 1
+                if self._done():
+                    break
+                k += 1
+        finally:
+            with self._lock:
+                self._direct = False
 
-    def _catch_up(self, behind: int, t0: int, anchor_tick: int) -> tuple[int, int]:
-        """The current tick's schedule passed ``behind`` whole periods ago: step through those
-        ticks without publishing them and return the (possibly re-anchored) schedule
-        ``(t0, anchor_tick)``. A gap longer than :data:`MAX_CATCH_UP_S` is not simulated: the
-        schedule is re-anchored at the current tick (sim time then lags the wall clock by the
-        gap; counted in ``reanchors``)."""
-        sim, stats, period = self.sim, self.stats, self.dt_ns
+    def _catch_up(self, behind: int, t0: int, anchor_tick: int, k: int) -> tuple[int, int, int]:
+        """Tick ``k``'s schedule passed ``behind`` whole periods ago: step through those ticks
+        without publishing them and return the (possibly re-anchored) schedule
+        ``(t0, anchor_tick, k)`` with the tick to publish next. A gap longer than
+        :data:`MAX_CATCH_UP_NS` is not simulated: the schedule is re-anchored at tick ``k``
+        (sim time then lags the wall clock by the gap; counted in ``reanchors``)."""
+        stats, period = self.stats, self.dt_ns
         now = time.perf_counter_ns()
         stats.missed_ticks += behind
         stats.skipped_ticks += behind
         self._last_miss_ns = now
         if behind * period > MAX_CATCH_UP_NS:
             stats.reanchors += 1
-            t0, anchor_tick = now, sim.tick
+            t0, anchor_tick = now, k
         else:
-            self._drain()
-            for _ in range(behind):
-                sim.step()
-                stats.ticks += 1
-            self._encode_current()
-            sim.prepare()
+            k += behind
+            with self._lock:
+                self._advance(k - self.sim.tick)
         reason = (
             f"realtime: {stats.skipped_ticks} ticks missed "
             f"(last gap {behind} ticks, {behind * period * 1e-6:.1f} ms)"
@@ -409,7 +445,7 @@ class ArmService(ServiceApp):
                 extra={"gap_ticks": behind, "missed_total": stats.missed_ticks,
                        "skipped_total": stats.skipped_ticks, "reanchors": stats.reanchors},
             )
-        return t0, anchor_tick
+        return t0, anchor_tick, k
 
     def run_lockstep(self) -> None:
         """Lockstep loop: tick k+1 follows as soon as the command answering tick k arrived."""

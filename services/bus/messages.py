@@ -52,6 +52,7 @@ from services.bus.proto_gen.psm_pb2 import (
     FaceBox,
     FaceDetections,
     Goal,
+    GripperCommand,
     Obstacle,
     ObstacleSet,
     PlannerStatus,
@@ -73,6 +74,7 @@ __all__ = [
     "FaceDetections",
     "FrameTransforms",
     "Goal",
+    "GripperCommand",
     "InvalidKeyError",
     "Keys",
     "MessageDecodeError",
@@ -116,6 +118,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         CollisionPrediction,
         PlannerStatus,
         TaskEvent,
+        GripperCommand,
         ServiceStatus,
         CompressedImage,
         FrameTransforms,
@@ -368,6 +371,11 @@ class Keys:
     def task_events(self) -> Topic:
         """``<prefix>/task/events`` — :class:`TaskEvent` on every sequencer transition."""
         return Topic(self._k("task", "events"), TaskEvent, QOS_DATA)
+
+    @property
+    def gripper_command(self) -> Topic:
+        """``<prefix>/gripper/command`` — :class:`GripperCommand` (open / close, from the task)."""
+        return Topic(self._k("gripper", "command"), GripperCommand, QOS_DATA)
 
     # -- health --------------------------------------------------------------------------------
     def status(self, service: str) -> Topic:

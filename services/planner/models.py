@@ -34,7 +34,10 @@ from psm import PhaseSpaceModel
 from psm.errors import PSMError
 from psm.model import FORMAT_VERSION
 
-__all__ = ["DEMOS_DIR", "ModelCache", "ModelSource", "cache_key", "load_models"]
+__all__ = [
+    "DEMOS_DIR", "ModelCache", "ModelSource", "TaskModels", "cache_key", "demo_path", "load_models",
+    "load_task_models",
+]
 
 #: The committed demonstrations (one MCAP recording per sub-task).
 DEMOS_DIR = Path(__file__).resolve().parents[2] / "data" / "demos"
@@ -134,3 +137,51 @@ def load_models(
         else:
             models[name] = cache.get_or_fit(name, t, X, src.options)
     return models
+
+
+@dataclass
+class TaskModels:
+    """What a task's steps run on: the PSM, the orientation profile (demonstrations that carry
+    orientations) and the demonstration's figures, per step name."""
+
+    models: dict[str, PhaseSpaceModel]
+    profiles: dict[str, Any]
+    demos: dict[str, Any]
+
+
+def demo_path(name: str, demos_dir: Path = DEMOS_DIR) -> Path:
+    """The demonstration file of a step: a path as given (it has a suffix or a directory), else
+    ``<demos_dir>/<name>.mcap``."""
+    p = Path(name)
+    return p if (p.suffix or len(p.parts) > 1) else demos_dir / f"{name}.mcap"
+
+
+def load_task_models(task: Any, cache: ModelCache | None = None, demos_dir: Path = DEMOS_DIR) -> TaskModels:
+    """Models, orientation profiles and demonstration figures of every step of ``task``
+    (a :class:`~services.planner.task.TaskSpec`). Errors name the file (see :func:`load_models`)."""
+    from services.learn_cli import check_motion, load_demonstration
+    from services.planner.orientation import OrientationProfile
+    from services.planner.sequencer import DemoFigures
+    from services.robot.recordings import ee_poses
+
+    out = TaskModels({}, {}, {})
+    for step in task.steps:
+        if step.model_file:
+            out.models[step.name] = PhaseSpaceModel.load(Path(step.model_file))
+            continue
+        path = demo_path(step.demo_name, demos_dir)
+        quats = None
+        if path.suffix.lower() == ".mcap":
+            load_demonstration(path)  # the checks psm learn makes (complete file, joints)
+            t, X, quats = ee_poses(path)
+        else:
+            t, X, _dims = load_demonstration(path)
+        check_motion(t, X)
+        fit = dict(step.fit)
+        model = cache.get_or_fit(step.name, t, X, fit) if cache else PhaseSpaceModel.fit(t, X, **fit)
+        out.models[step.name] = model
+        if X.shape[1] == 3:
+            out.demos[step.name] = DemoFigures.of(t, X)
+        if quats is not None:
+            out.profiles[step.name] = OrientationProfile.fit(t, quats)
+    return out

@@ -13,7 +13,7 @@ import numpy as np
 
 from services.robot.model import RobotModel
 
-__all__ = ["TEACH_METADATA", "ee_trajectory"]
+__all__ = ["TEACH_METADATA", "ee_poses", "ee_trajectory"]
 
 #: MCAP metadata record of a guided demonstration (``psm teach``): the task, its via-points,
 #: the tremor seed and the end-effector frame.
@@ -25,7 +25,8 @@ def ee_trajectory(
     robot: RobotModel | None = None,
     *,
     topic: str | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+    orientation: bool = False,
+) -> tuple[np.ndarray, ...]:
     """End-effector trajectory of a recording by forward kinematics from its joint states.
 
     Args:
@@ -33,9 +34,11 @@ def ee_trajectory(
         robot: robot model; default the Panda with the EE frame stored in the recording's
             ``psm.teach`` metadata (else ``panda_hand_tcp``).
         topic: the ArmState key (default: every key ending in ``/arm/state``).
+        orientation: also return the orientations (see :func:`ee_poses`).
 
     Returns:
-        ``t (T,)`` seconds from the first state (sim time), ``X (T, 3)`` metres, base frame.
+        ``t (T,)`` seconds from the first state (sim time), ``X (T, 3)`` metres, base frame
+        (and ``quats (T, 4)`` xyzw with ``orientation``).
         Duplicate ticks (a lockstep arm re-offering state 0) are dropped; samples are sorted
         by tick.
 
@@ -69,4 +72,19 @@ def ee_trajectory(
     if Q.shape[1] != robot.n:
         raise ValueError(f"{path}: states have {Q.shape[1]} joints, robot has {robot.n}")
     t = (t_ns - t_ns[0]) * 1e-9
+    if orientation:
+        from services.robot.rotations import quat_xyzw_from_matrix
+
+        poses = [robot.fk(q) for q in Q]
+        X = np.array([p for p, _ in poses])
+        quats = quat_xyzw_from_matrix(np.stack([R for _, R in poses]))
+        return t, X, quats
     return t, robot.fk_positions(Q)
+
+
+def ee_poses(
+    path: str | Path, robot: RobotModel | None = None, *, topic: str | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Like :func:`ee_trajectory`, with the orientation: ``t (T,)`` [s], ``X (T, 3)`` [m],
+    ``quats (T, 4)`` xyzw (``w >= 0``) of the end effector in the base frame."""
+    return ee_trajectory(path, robot, topic=topic, orientation=True)  # type: ignore[return-value]

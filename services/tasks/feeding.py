@@ -11,12 +11,16 @@ z = 0, x forward, y to the robot's left)::
     person = [0.35, 0.50, 0.45]
     cylinder_contact = [0.45, -0.10, 0.04]
 
-    [task]
-    sequence = ["grasp_spoon", "back_to_neutral", "reach_bowl", "scoop", "reach_person"]
+    [task]                             # services.planner.task.TaskSpec
+    name = "feeding"
+    [[task.steps]]
+    name = "grasp_spoon"
+    goal = "spoon"
+    ...
 
 :func:`load_feeding` validates it at load (unknown keys, missing keys, a position that is not
-three finite numbers, an empty sequence) and raises :class:`FeedingConfigError` with one line
-naming the field (as :func:`~services.bus.config.config_error` names it), e.g.
+three finite numbers, no steps, a static goal that is not a scene position) and raises
+:class:`FeedingConfigError` with one line naming the field, e.g.
 ``configs/feeding.toml: scene.spoon: expected 3 finite numbers (m), got [0.5, -0.25]``.
 """
 
@@ -29,6 +33,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 from services.bus.config import ConfigError, config_error, read_toml
+from services.planner.task import TaskSpec
 
 #: The feeding configuration shipped with the repository.
 DEFAULT_FEEDING_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "feeding.toml"
@@ -87,31 +92,20 @@ class FeedingScene(BaseModel):
             raise ValueError("must not be empty")
         return value
 
-
-class FeedingTask(BaseModel):
-    """The task: ``sequence`` is the order of the feeding sub-tasks (demonstration names)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    sequence: tuple[str, ...]
-
-    @field_validator("sequence")
-    @classmethod
-    def _names(cls, value: tuple[str, ...]) -> tuple[str, ...]:
-        if not value:
-            raise ValueError("must name at least one sub-task")
-        if not all(value):
-            raise ValueError("sub-task names must not be empty")
-        return value
+    def positions(self) -> dict[str, Vec3]:
+        """Every named position of the scene, m."""
+        return {name: getattr(self, name) for name in type(self).model_fields if name != "frame_id"}
 
 
 class FeedingConfig(BaseModel):
-    """``configs/feeding.toml``: the :class:`FeedingScene` and the :class:`FeedingTask`."""
+    """``configs/feeding.toml``: the :class:`FeedingScene` and the task
+    (:class:`~services.planner.task.TaskSpec`); :func:`parse_feeding` also checks that every
+    static goal is a scene position."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     scene: FeedingScene
-    task: FeedingTask
+    task: TaskSpec
 
 
 def parse_feeding(data: dict[str, Any], source: str = "feeding config") -> FeedingConfig:
@@ -121,10 +115,20 @@ def parse_feeding(data: dict[str, Any], source: str = "feeding config") -> Feedi
         FeedingConfigError: ``"SOURCE: field.path: message"``.
     """
     try:
-        return FeedingConfig.model_validate(data)
+        cfg = FeedingConfig.model_validate(data)
     except ValidationError as exc:
         err = config_error(exc)
         raise FeedingConfigError(f"{source}: {err.path}: {err.reason}") from None
+    positions = cfg.scene.positions()
+    for i, step in enumerate(cfg.task.steps):
+        if not step.live and step.goal not in positions:
+            raise FeedingConfigError(
+                f"{source}: task.steps[{i}].goal: {step.goal!r} is not a scene position "
+                f"({', '.join(positions)}; a goal from the bus needs live = true)"
+            )
+    if cfg.task.on_goal_lost == "neutral" and cfg.task.neutral not in positions:
+        raise FeedingConfigError(f"{source}: task.neutral: {cfg.task.neutral!r} is not a scene position")
+    return cfg
 
 
 def load_feeding(path: str | Path | None = None) -> FeedingConfig:
@@ -149,7 +153,6 @@ __all__ = [
     "FeedingConfig",
     "FeedingConfigError",
     "FeedingScene",
-    "FeedingTask",
     "Vec3",
     "load_feeding",
     "parse_feeding",

@@ -218,7 +218,7 @@ class CollisionPrediction(_message.Message):
     def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., collision: _Optional[bool] = ..., obstacle_id: _Optional[str] = ..., stop_position: _Optional[_Iterable[float]] = ..., time_to_collision_s: _Optional[float] = ..., state_tick: _Optional[int] = ...) -> None: ...
 
 class PlannerStatus(_message.Message):
-    __slots__ = ("stamp_ns", "seq", "state", "task", "segment_index", "time_to_go_s", "goal", "goal_name", "state_tick", "detail")
+    __slots__ = ("stamp_ns", "seq", "state", "task", "segment_index", "time_to_go_s", "goal", "goal_name", "state_tick", "detail", "step", "step_index", "step_count", "mode", "distance_to_goal_m", "speed_mps", "orientation_reference", "latency_p50_us", "latency_p99_us", "latency_max_us", "answered", "rejected_states", "rejected_goals", "step_elapsed_s", "goal_speed_mps")
     class State(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         STATE_UNSPECIFIED: _ClassVar[PlannerStatus.State]
@@ -243,6 +243,21 @@ class PlannerStatus(_message.Message):
     GOAL_NAME_FIELD_NUMBER: _ClassVar[int]
     STATE_TICK_FIELD_NUMBER: _ClassVar[int]
     DETAIL_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    STEP_INDEX_FIELD_NUMBER: _ClassVar[int]
+    STEP_COUNT_FIELD_NUMBER: _ClassVar[int]
+    MODE_FIELD_NUMBER: _ClassVar[int]
+    DISTANCE_TO_GOAL_M_FIELD_NUMBER: _ClassVar[int]
+    SPEED_MPS_FIELD_NUMBER: _ClassVar[int]
+    ORIENTATION_REFERENCE_FIELD_NUMBER: _ClassVar[int]
+    LATENCY_P50_US_FIELD_NUMBER: _ClassVar[int]
+    LATENCY_P99_US_FIELD_NUMBER: _ClassVar[int]
+    LATENCY_MAX_US_FIELD_NUMBER: _ClassVar[int]
+    ANSWERED_FIELD_NUMBER: _ClassVar[int]
+    REJECTED_STATES_FIELD_NUMBER: _ClassVar[int]
+    REJECTED_GOALS_FIELD_NUMBER: _ClassVar[int]
+    STEP_ELAPSED_S_FIELD_NUMBER: _ClassVar[int]
+    GOAL_SPEED_MPS_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     seq: int
     state: PlannerStatus.State
@@ -253,10 +268,25 @@ class PlannerStatus(_message.Message):
     goal_name: str
     state_tick: int
     detail: str
-    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., state: _Optional[_Union[PlannerStatus.State, str]] = ..., task: _Optional[str] = ..., segment_index: _Optional[_Iterable[int]] = ..., time_to_go_s: _Optional[_Iterable[float]] = ..., goal: _Optional[_Union[Vec3, _Mapping]] = ..., goal_name: _Optional[str] = ..., state_tick: _Optional[int] = ..., detail: _Optional[str] = ...) -> None: ...
+    step: str
+    step_index: int
+    step_count: int
+    mode: _containers.RepeatedScalarFieldContainer[str]
+    distance_to_goal_m: float
+    speed_mps: float
+    orientation_reference: Quat
+    latency_p50_us: float
+    latency_p99_us: float
+    latency_max_us: float
+    answered: int
+    rejected_states: int
+    rejected_goals: int
+    step_elapsed_s: float
+    goal_speed_mps: float
+    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., state: _Optional[_Union[PlannerStatus.State, str]] = ..., task: _Optional[str] = ..., segment_index: _Optional[_Iterable[int]] = ..., time_to_go_s: _Optional[_Iterable[float]] = ..., goal: _Optional[_Union[Vec3, _Mapping]] = ..., goal_name: _Optional[str] = ..., state_tick: _Optional[int] = ..., detail: _Optional[str] = ..., step: _Optional[str] = ..., step_index: _Optional[int] = ..., step_count: _Optional[int] = ..., mode: _Optional[_Iterable[str]] = ..., distance_to_goal_m: _Optional[float] = ..., speed_mps: _Optional[float] = ..., orientation_reference: _Optional[_Union[Quat, _Mapping]] = ..., latency_p50_us: _Optional[float] = ..., latency_p99_us: _Optional[float] = ..., latency_max_us: _Optional[float] = ..., answered: _Optional[int] = ..., rejected_states: _Optional[int] = ..., rejected_goals: _Optional[int] = ..., step_elapsed_s: _Optional[float] = ..., goal_speed_mps: _Optional[float] = ...) -> None: ...
 
 class TaskEvent(_message.Message):
-    __slots__ = ("stamp_ns", "seq", "task", "kind", "detail")
+    __slots__ = ("stamp_ns", "seq", "task", "kind", "detail", "step", "step_index", "state_tick", "summary_json")
     class Kind(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         KIND_UNSPECIFIED: _ClassVar[TaskEvent.Kind]
@@ -269,6 +299,8 @@ class TaskEvent(_message.Message):
         COMPLETED: _ClassVar[TaskEvent.Kind]
         ABORTED: _ClassVar[TaskEvent.Kind]
         ERROR: _ClassVar[TaskEvent.Kind]
+        GRIPPER: _ClassVar[TaskEvent.Kind]
+        STEP_COMPLETED: _ClassVar[TaskEvent.Kind]
     KIND_UNSPECIFIED: TaskEvent.Kind
     STARTED: TaskEvent.Kind
     SEGMENT_CHANGED: TaskEvent.Kind
@@ -279,17 +311,49 @@ class TaskEvent(_message.Message):
     COMPLETED: TaskEvent.Kind
     ABORTED: TaskEvent.Kind
     ERROR: TaskEvent.Kind
+    GRIPPER: TaskEvent.Kind
+    STEP_COMPLETED: TaskEvent.Kind
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     TASK_FIELD_NUMBER: _ClassVar[int]
     KIND_FIELD_NUMBER: _ClassVar[int]
     DETAIL_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    STEP_INDEX_FIELD_NUMBER: _ClassVar[int]
+    STATE_TICK_FIELD_NUMBER: _ClassVar[int]
+    SUMMARY_JSON_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     seq: int
     task: str
     kind: TaskEvent.Kind
     detail: str
-    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., task: _Optional[str] = ..., kind: _Optional[_Union[TaskEvent.Kind, str]] = ..., detail: _Optional[str] = ...) -> None: ...
+    step: str
+    step_index: int
+    state_tick: int
+    summary_json: str
+    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., task: _Optional[str] = ..., kind: _Optional[_Union[TaskEvent.Kind, str]] = ..., detail: _Optional[str] = ..., step: _Optional[str] = ..., step_index: _Optional[int] = ..., state_tick: _Optional[int] = ..., summary_json: _Optional[str] = ...) -> None: ...
+
+class GripperCommand(_message.Message):
+    __slots__ = ("stamp_ns", "seq", "action", "step", "source")
+    class Action(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+        __slots__ = ()
+        ACTION_UNSPECIFIED: _ClassVar[GripperCommand.Action]
+        OPEN: _ClassVar[GripperCommand.Action]
+        CLOSE: _ClassVar[GripperCommand.Action]
+    ACTION_UNSPECIFIED: GripperCommand.Action
+    OPEN: GripperCommand.Action
+    CLOSE: GripperCommand.Action
+    STAMP_NS_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    STEP_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    stamp_ns: int
+    seq: int
+    action: GripperCommand.Action
+    step: str
+    source: str
+    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., action: _Optional[_Union[GripperCommand.Action, str]] = ..., step: _Optional[str] = ..., source: _Optional[str] = ...) -> None: ...
 
 class ServiceStatus(_message.Message):
     __slots__ = ("stamp_ns", "seq", "service", "state", "received", "rejected", "published", "errors", "dropped", "uptime_s", "last_error", "version", "queued")

@@ -1,0 +1,67 @@
+"""Configuration of the planner service: the ``[planner]`` table on top of the shared bus settings.
+
+The task itself (scene and steps) is its own file, ``task_file`` (default the shipped
+``configs/feeding.toml``; :mod:`services.planner.task`)::
+
+    [planner]
+    task_file = "configs/feeding.toml"
+    cache_dir = "out/models"        # learned models, by content hash
+    status_rate_hz = 20.0
+    exit_when_done = true           # psm up: the stack ends when the task does
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+
+from services.bus.config import ConfigError, Section, ServiceConfig
+
+__all__ = ["PlannerConfig", "PlannerSection"]
+
+
+class PlannerSection(Section):
+    """The ``[planner]`` table (units in the field descriptions)."""
+
+    task_file: str = Field("", description="scene + task TOML ('' = the shipped configs/feeding.toml)")
+    demos_dir: str = Field("", description="directory of the step demonstrations ('' = data/demos)")
+    cache_dir: str = Field("out/models", description="learned models are cached here ('' = no cache)")
+    status_rate_hz: float = Field(20.0, ge=1.0, le=100.0, description="PlannerStatus rate [Hz]")
+    exit_when_done: bool = Field(
+        False, description="exit (code 0) once the task is done or aborted, after linger_s"
+    )
+    linger_s: float = Field(
+        0.5, ge=0.0, le=60.0, description="keep answering states this long after the task ends [s]"
+    )
+    summary_file: str = Field("", description="write the task summary (JSON) here at exit")
+    max_tick_gap: int = Field(
+        50, ge=1, description="an arm state more than this many ticks ahead of the last is rejected"
+    )
+    resync_after: int = Field(
+        25, ge=1, description="after this many states rejected in a row, follow the new stream (arm restart)"
+    )
+    stamp_tolerance_s: float = Field(
+        0.0005, gt=0.0, description="a state stamp this far off tick x dt from the last is rejected [s]"
+    )
+    source: str = Field("planner", min_length=1, description="the commands' source field")
+    rt_priority: int = Field(
+        0, ge=0, le=99, description="SCHED_FIFO priority of the planner process, 1-99 (0 = normal scheduling)"
+    )
+
+    def task_path(self) -> Path:
+        """The task file to load."""
+        from services.tasks.feeding import DEFAULT_FEEDING_CONFIG
+
+        return Path(self.task_file) if self.task_file else DEFAULT_FEEDING_CONFIG
+
+    def check(self) -> None:
+        """The task file exists."""
+        if not self.task_path().exists():
+            raise ConfigError("task_file", f"{self.task_path()}: no such file")
+
+
+class PlannerConfig(ServiceConfig):
+    """Config of the ``psm plan`` service: bus settings + ``[planner]``."""
+
+    planner: PlannerSection = Field(default_factory=PlannerSection)

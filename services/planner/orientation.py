@@ -1,0 +1,142 @@
+"""End-effector orientation as a function of the time to completion (the paper's coupling).
+
+The paper couples the hand's orientation to the time to completion ``t_e`` of the z component:
+the orientation is not a PSM dimension of its own but follows the progress of the motion.
+:class:`OrientationProfile` learns it from a demonstration — the recorded orientations
+``R(τ)`` over the demonstration time ``τ ∈ [0, T]`` — and gives, on the way, the reference for a
+phase ``s ∈ [0, 1]`` (``τ = s T``) by spherical linear interpolation (scipy's ``Slerp``, sampled
+once into a table so the control path does plain float arithmetic).
+
+At run time (:class:`OrientationTracker`) the phase comes from ``t_e``: ``s = 1 − t_e / t_e0``
+with ``t_e0`` the time to completion at the step's first tick, kept monotonic (a goal that
+jumps away raises ``t_e`` but never turns the hand back). A start orientation different from the
+demonstrated one (the arm ends the previous step slightly turned) is blended out over the motion:
+``R_ref(s) = exp((1 − s) log ΔR) R(s T)`` with ``ΔR = R_start R(0)ᵀ``, so the reference starts at
+the arm's own orientation and ends at the demonstrated final one.
+
+Quaternions are ``(x, y, z, w)`` with ``w ≥ 0`` (the bus convention).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation, Slerp
+
+__all__ = ["OrientationProfile", "OrientationTracker"]
+
+#: Samples of the phase table (a 3.5 s demonstration: one per 7 ms; Slerp is exact in between).
+TABLE_SIZE = 501
+
+
+@dataclass(frozen=True)
+class OrientationProfile:
+    """A demonstration's orientation over its phase, tabulated.
+
+    ``quats (N, 4)`` xyzw at the phases ``s = linspace(0, 1, N)``; ``omega (N, 3)`` [rad/s] the
+    demonstration's angular velocity there (base frame) at the demonstrated pace; ``duration``
+    [s] the demonstration's length ``T``.
+    """
+
+    quats: NDArray[np.float64]
+    omega: NDArray[np.float64]
+    duration: float
+
+    @classmethod
+    def fit(cls, t: ArrayLike, quats_xyzw: ArrayLike, size: int = TABLE_SIZE) -> OrientationProfile:
+        """Learn from a demonstration: ``t (T,)`` [s] increasing, ``quats_xyzw (T, 4)``.
+
+        Raises:
+            ValueError: shapes disagree, fewer than two samples, times not increasing, or a
+                quaternion of zero or non-finite norm.
+        """
+        t = np.asarray(t, dtype=float)
+        Q = np.asarray(quats_xyzw, dtype=float)
+        if t.ndim != 1 or Q.shape != (t.size, 4) or t.size < 2:
+            raise ValueError(f"orientation demo: t (T,) and quats (T, 4) needed, got {t.shape}, {Q.shape}")
+        norms = np.linalg.norm(Q, axis=1)
+        if not (np.all(np.isfinite(Q)) and np.all(norms > 1e-9)):
+            raise ValueError("orientation demo: quaternions must be finite and non-zero")
+        if np.any(np.diff(t) <= 0):
+            raise ValueError("orientation demo: times must increase")
+        rots = Rotation.from_quat(Q / norms[:, None])
+        slerp = Slerp(t - t[0], rots)
+        T = float(t[-1] - t[0])
+        tau = np.linspace(0.0, T, size)
+        table = slerp(tau)
+        quats = table.as_quat()
+        quats[quats[:, 3] < 0] *= -1.0
+        # Angular velocity of the table (central differences of the rotation, base frame).
+        rv = (table[1:] * table[:-1].inv()).as_rotvec() / np.diff(tau)[:, None]
+        omega = np.zeros((size, 3))
+        omega[1:-1] = 0.5 * (rv[1:] + rv[:-1])
+        omega[0], omega[-1] = rv[0], rv[-1]
+        return cls(quats, omega, T)
+
+    @classmethod
+    def constant(cls, quat_xyzw: ArrayLike, duration: float = 1.0) -> OrientationProfile:
+        """A profile that holds one orientation (a demonstration that does not turn the hand)."""
+        q = np.asarray(quat_xyzw, dtype=float)
+        q = q / np.linalg.norm(q)
+        if q[3] < 0:
+            q = -q
+        return cls(np.tile(q, (2, 1)), np.zeros((2, 3)), float(duration))
+
+    def at(self, s: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(quat (4,), omega (3,))`` at phase ``s`` (clamped to [0, 1]); omega at the
+        demonstrated pace [rad/s]."""
+        n = self.quats.shape[0] - 1
+        u = min(max(s, 0.0), 1.0) * n
+        i = min(int(u), n - 1)
+        w = u - i
+        q0, q1 = self.quats[i], self.quats[i + 1]
+        dot = float(q0 @ q1)
+        q = (1.0 - w) * q0 + (w if dot >= 0 else -w) * q1  # nlerp: exact to 1e-6 at table steps
+        q = q / math.sqrt(float(q @ q))
+        if q[3] < 0:
+            q = -q
+        return q, (1.0 - w) * self.omega[i] + w * self.omega[i + 1]
+
+    @property
+    def turns(self) -> bool:
+        """True if the demonstration turns the hand by more than 0.1°."""
+        q0 = self.quats[0]
+        return bool(np.min(np.abs(self.quats @ q0)) < math.cos(math.radians(0.05)))
+
+
+class OrientationTracker:
+    """The orientation reference of one step: :meth:`update` with the reference dimension's
+    ``t_e`` [s] gives ``(quat_xyzw (4,), omega (3,) [rad/s])`` (see the module docstring).
+
+    The start-offset blend is applied to the whole table once, here, so :meth:`update` is a
+    table lookup."""
+
+    def __init__(self, profile: OrientationProfile, start_quat_xyzw: ArrayLike) -> None:
+        q0 = Rotation.from_quat(np.asarray(start_quat_xyzw, dtype=float))
+        delta = (q0 * Rotation.from_quat(profile.quats[0]).inv()).as_rotvec()
+        if float(np.linalg.norm(delta)) > 1e-9:
+            s = np.linspace(0.0, 1.0, profile.quats.shape[0])
+            table = (
+                Rotation.from_rotvec((1.0 - s)[:, None] * delta) * Rotation.from_quat(profile.quats)
+            ).as_quat()
+            table[table[:, 3] < 0] *= -1.0
+            profile = OrientationProfile(table, profile.omega, profile.duration)
+        self.profile = profile
+        self._te0: float | None = None
+        self._rate = 0.0
+        self.phase = 0.0
+
+    def update(self, time_to_go: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The reference for the current ``t_e`` of the reference dimension [s]."""
+        te = max(0.0, float(time_to_go))
+        if self._te0 is None:
+            self._te0 = te
+            self._rate = self.profile.duration / te if te > 1e-9 else 0.0
+        s = 1.0 if self._te0 <= 1e-9 else 1.0 - te / self._te0
+        if s > self.phase:
+            self.phase = min(1.0, s)
+        q, omega = self.profile.at(self.phase)
+        return q, (omega * self._rate if self.phase < 1.0 else omega * 0.0)

@@ -1,0 +1,623 @@
+"""The task sequencer: one PSM per step, goals, holding, completion — bus-free.
+
+:class:`TaskRunner` is the planner's brain, used unchanged by the planner service (on every arm
+state) and by the in-process simulation (:mod:`services.planner.simulate`)::
+
+    runner = TaskRunner(task, scene, models, profiles)
+    runner.update_goal("person", position, stamp_ns=t, valid=True)   # live goals, any time
+    out = runner.step(t_ns, x, v, quat, dt)     # every arm state: the command
+    out.acceleration, out.orientation, out.angular_velocity
+    runner.drain_events()                       # transitions since the last call
+
+Per step (``services.planner.task.StepSpec``):
+
+* **start** from the arm's current state: the step's PSM controller towards its goal (scene
+  position or live goal, plus the step's offset), an orientation tracker from the arm's current
+  orientation (:class:`~services.planner.orientation.OrientationTracker`);
+* **run**: the PSM's acceleration per dimension (synchronised, velocity continuous when the
+  goal moves: :meth:`psm.PSMController.set_goal`); the orientation reference follows the
+  reference dimension's ``t_e``;
+* **hold** while the goal is unavailable (a live goal lost, invalid, stale, or outside the
+  workspace): ``on_goal_lost = "hold"`` stops the arm with a critically damped approach to its
+  stopping point and resumes the same PSM from wherever it stopped once the goal is back;
+  ``"neutral"`` drives the neutral model to the neutral position meanwhile and starts the step
+  afresh from there once the goal is back;
+* **done** once within ``position_tolerance_m`` of the goal and ``velocity_tolerance_mps`` of the
+  goal's own velocity, then ``dwell_s`` (and ``follow_s`` for a live goal) with the PSM holding
+  the goal, then the gripper action, then the next step. A step that takes longer than its
+  timeout aborts the task (the arm holds where it is).
+
+Units: positions m, velocities m/s, accelerations m/s², times ns (stamps) or s (durations),
+quaternions ``(x, y, z, w)`` with ``w ≥ 0``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from psm import PhaseSpaceModel, PSMController
+from services.planner.orientation import OrientationProfile, OrientationTracker
+from services.planner.task import StepSpec, TaskSpec
+
+__all__ = [
+    "DemoFigures",
+    "GoalBook",
+    "PlannerOutput",
+    "StepReport",
+    "TaskEventRecord",
+    "TaskRunner",
+]
+
+# Runner states (the names of PlannerStatus.State).
+IDLE, RUNNING, HOLDING, DONE, FAULT = "IDLE", "RUNNING", "HOLDING", "DONE", "FAULT"
+
+
+@dataclass(frozen=True)
+class DemoFigures:
+    """What a step's demonstration did, for the generalisation criteria: ``peak_speed`` [m/s],
+    ``away_m (3,)`` the most each axis moved farther from its goal than it started [m]."""
+
+    peak_speed: float
+    away_m: tuple[float, float, float]
+
+    @classmethod
+    def of(cls, t: NDArray[np.float64], X: NDArray[np.float64]) -> DemoFigures:
+        """From a demonstration ``t (T,)`` [s], ``X (T, 3)`` [m] (velocity by central differences
+        of the positions smoothed over 20 ms, as the fit sees them)."""
+        from psm.fitting import smooth
+
+        sm = smooth(t, X, 0.02)
+        speed = float(np.max(np.linalg.norm(sm.v, axis=1)))
+        goal = X[-1]
+        dist = np.abs(X - goal)
+        away = np.maximum(0.0, dist.max(axis=0) - dist[0])
+        return cls(speed, (float(away[0]), float(away[1]), float(away[2])))
+
+
+@dataclass
+class TaskEventRecord:
+    """A transition: ``kind`` (a TaskEvent.Kind name), the step, the tick and a detail line."""
+
+    kind: str
+    step: str
+    step_index: int
+    tick: int
+    stamp_ns: int
+    detail: str = ""
+    summary: dict[str, Any] | None = None
+
+
+@dataclass
+class PlannerOutput:
+    """The command for one arm state: ``acceleration (3,)`` [m/s²], ``orientation (4,)`` xyzw,
+    ``angular_velocity (3,)`` [rad/s]."""
+
+    acceleration: NDArray[np.float64]
+    orientation: NDArray[np.float64]
+    angular_velocity: NDArray[np.float64]
+
+
+@dataclass
+class StepReport:
+    """Figures of one step as it ran (``summary()`` is the JSON of TaskEvent / ``psm up``).
+
+    The position and velocity errors are taken when the step is done (a static goal: after the
+    dwell) or, for a live goal, when it was reached; ``hold_rms_m`` / ``hold_max_m`` are the
+    distance to the goal from then on (dwell and following)."""
+
+    name: str
+    index: int
+    goal_name: str
+    start_ns: int
+    start: NDArray[np.float64]
+    demo: DemoFigures | None = None
+    end_ns: int = 0
+    success: bool = False
+    outcome: str = "running"
+    position_error_m: float = math.nan
+    velocity_error_mps: float = math.nan
+    reached_ns: int = 0
+    peak_speed_mps: float = 0.0
+    peak_accel_mps2: float = 0.0
+    peak_command_accel_mps2: float = 0.0
+    hold_s: float = 0.0
+    max_orientation_error_deg: float = 0.0
+    start_dist: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    max_dist: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    goal: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    has_goal: bool = False
+    follow_sq: float = 0.0  #: sum of squared distances to the goal once reached (dwell, follow)
+    follow_n: int = 0
+    follow_max_m: float = 0.0
+
+    def set_goal(self, goal: NDArray[np.float64], x: NDArray[np.float64]) -> None:
+        """The step's goal became known with the arm at ``x (3,)`` [m] (distances start here)."""
+        self.goal = np.array(goal, dtype=float)
+        self.start_dist = np.abs(np.asarray(x, dtype=float) - self.goal)
+        self.max_dist = self.start_dist.copy()
+        self.has_goal = True
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-able figures (durations in s, distances in m)."""
+        away = np.maximum(0.0, self.max_dist - self.start_dist)
+        out: dict[str, Any] = {
+            "step": self.name,
+            "index": self.index,
+            "goal": self.goal_name,
+            "goal_position_m": [round(float(c), 5) for c in self.goal],
+            "outcome": self.outcome,
+            "success": self.success,
+            "duration_s": (self.end_ns - self.start_ns) * 1e-9 if self.end_ns else None,
+            "time_to_reach_s": (self.reached_ns - self.start_ns) * 1e-9 if self.reached_ns else None,
+            "position_error_m": self.position_error_m,
+            "velocity_error_mps": self.velocity_error_mps,
+            "peak_speed_mps": self.peak_speed_mps,
+            "peak_accel_mps2": self.peak_accel_mps2,
+            "peak_command_accel_mps2": self.peak_command_accel_mps2,
+            "hold_s": self.hold_s,
+            "max_orientation_error_deg": self.max_orientation_error_deg,
+            "away_m": [float(a) for a in away],
+            "hold_rms_m": math.sqrt(self.follow_sq / self.follow_n) if self.follow_n else None,
+            "hold_max_m": self.follow_max_m if self.follow_n else None,
+        }
+        if self.demo is not None:
+            out["demo_peak_speed_mps"] = self.demo.peak_speed
+            out["peak_speed_ratio"] = (
+                self.peak_speed_mps / self.demo.peak_speed if self.demo.peak_speed else None
+            )
+            out["demo_away_m"] = list(self.demo.away_m)
+            out["extra_away_m"] = [
+                max(0.0, float(a) - d) for a, d in zip(away, self.demo.away_m, strict=True)
+            ]
+        return out
+
+
+@dataclass
+class _LiveGoal:
+    position: NDArray[np.float64]
+    stamp_ns: int
+    valid: bool
+    reason: str
+    velocity: NDArray[np.float64]
+
+
+class GoalBook:
+    """The goals the task may use: static scene positions and live goals from the bus.
+
+    A live goal is unavailable while it is marked invalid, when its last update is older than
+    ``goal_timeout_s`` on the stack's clock, or when it lies outside the workspace (such an
+    update is rejected and counted, and never used). Its velocity is estimated from successive
+    updates (a first-order filter of the finite differences, 0.1 s time constant)."""
+
+    def __init__(self, task: TaskSpec, scene: Mapping[str, Any]) -> None:
+        self.task = task
+        self.static = {k: np.asarray(v, dtype=float) for k, v in scene.items()}
+        self.live: dict[str, _LiveGoal] = {}
+        self.rejected = 0
+        self.last_rejection = ""
+        self._timeout_ns = int(task.goal_timeout_s * 1e9)
+
+    def update(self, name: str, position: Any, stamp_ns: int, valid: bool = True, reason: str = "") -> str:
+        """Offer a live goal; returns ``""`` if accepted, else why it was rejected (counted)."""
+        p = np.asarray(position, dtype=float)
+        problem = ""
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            problem = "position is not 3 finite numbers"
+        elif valid and not self.task.workspace.contains(p):
+            problem = f"position {np.round(p, 3).tolist()} is outside the workspace"
+        prev = self.live.get(name)
+        if not problem and prev is not None and stamp_ns < prev.stamp_ns:
+            problem = "stamp older than the last update"
+        if problem:
+            self.rejected += 1
+            self.last_rejection = f"goal {name}: {problem}"
+            if prev is not None and valid:
+                # A goal that left the workspace (or turned non-finite) is not used any more.
+                prev.valid, prev.reason = False, problem
+            return problem
+        vel = np.zeros(3)
+        if prev is not None and prev.valid and valid and stamp_ns > prev.stamp_ns:
+            dt = (stamp_ns - prev.stamp_ns) * 1e-9
+            w = min(1.0, dt / 0.1)
+            vel = (1.0 - w) * prev.velocity + w * (p - prev.position) / dt
+        self.live[name] = _LiveGoal(
+            p, int(stamp_ns), bool(valid), reason or ("" if valid else "invalid"), vel
+        )
+        return ""
+
+    def resolve(
+        self, step: StepSpec, now_ns: int
+    ) -> tuple[NDArray[np.float64] | None, NDArray[np.float64], str]:
+        """``(goal (3,) or None, goal velocity (3,), why unavailable)`` for ``step`` at ``now_ns``."""
+        offset = np.asarray(step.offset_m, dtype=float)
+        if not step.live:
+            return self.static[step.goal] + offset, np.zeros(3), ""
+        g = self.live.get(step.goal)
+        if g is None:
+            return None, np.zeros(3), f"waiting for goal {step.goal}"
+        if not g.valid:
+            return None, np.zeros(3), f"goal {step.goal} lost: {g.reason}"
+        if now_ns - g.stamp_ns > self._timeout_ns:
+            return None, np.zeros(3), f"goal {step.goal} stale ({(now_ns - g.stamp_ns) * 1e-9:.2f} s old)"
+        return g.position + offset, g.velocity, ""
+
+
+class TaskRunner:
+    """Runs a :class:`~services.planner.task.TaskSpec` (see the module docstring).
+
+    Args:
+        task: the steps and goal handling.
+        scene: named static positions ``(3,)`` [m].
+        models: one :class:`PhaseSpaceModel` per step name.
+        profiles: the orientation profile per step name (a step without one, or with
+            ``orientation = "hold"``, keeps its start orientation).
+        demos: the demonstration figures per step name (for the step reports).
+    """
+
+    def __init__(
+        self,
+        task: TaskSpec,
+        scene: Mapping[str, Any],
+        models: Mapping[str, PhaseSpaceModel],
+        profiles: Mapping[str, OrientationProfile] | None = None,
+        demos: Mapping[str, DemoFigures] | None = None,
+    ) -> None:
+        missing = [s.name for s in task.steps if s.name not in models]
+        if missing:
+            raise ValueError(f"no model for step {missing[0]!r}")
+        self.task = task
+        self.goals = GoalBook(task, scene)
+        self.models = dict(models)
+        self.profiles = dict(profiles or {})
+        self.demos = dict(demos or {})
+        self.state = IDLE
+        self.detail = ""
+        self.index = -1
+        self.reports: list[StepReport] = []
+        self._events: list[TaskEventRecord] = []
+        self._ctrl: PSMController | None = None
+        self._orient: OrientationTracker | None = None
+        self._goal: NDArray[np.float64] | None = None
+        self._goal_velocity = np.zeros(3)
+        self._event_goal: NDArray[np.float64] | None = None
+        self._segments: tuple[int, ...] = ()
+        self._phase = "idle"  # run | dwell | hold | neutral | done | fault
+        self._phase_since_ns = 0
+        self._hold_target: NDArray[np.float64] | None = None
+        self._hold_quat: NDArray[np.float64] | None = None
+        self._last_quat = np.array([0.0, 0.0, 0.0, 1.0])
+        self._last_omega = np.zeros(3)
+        self._tick = 0
+        self._now_ns = 0
+        self._neutral_ctrl: PSMController | None = None
+        self._orient_dim = task.orientation_dim
+        self._restart = False
+        self.distance = math.nan
+        self.speed = 0.0
+        w = task.hold_omega
+        self._kp, self._kd = w * w, 2.0 * w
+
+    # ------------------------------------------------------------------ inputs
+    def update_goal(
+        self, name: str, position: Any, stamp_ns: int, valid: bool = True, reason: str = ""
+    ) -> str:
+        """A live goal update (see :meth:`GoalBook.update`); ``""`` if accepted."""
+        return self.goals.update(name, position, stamp_ns, valid, reason)
+
+    @property
+    def step_spec(self) -> StepSpec | None:
+        """The active step, or None before the start and after the end."""
+        return self.task.steps[self.index] if 0 <= self.index < len(self.task.steps) else None
+
+    @property
+    def controller(self) -> PSMController | None:
+        """The active step's PSM controller."""
+        return self._ctrl
+
+    @property
+    def goal(self) -> NDArray[np.float64] | None:
+        """The goal in use (with the step's offset) [m], or None."""
+        return self._goal
+
+    def restart_step(self) -> None:
+        """Start the active step afresh from the next state (the arm's state stream restarted);
+        its report so far is discarded."""
+        if self._phase not in ("done", "fault", "idle") and self.reports:
+            self._restart = True
+
+    def drain_events(self) -> list[TaskEventRecord]:
+        """The transitions since the last call, oldest first."""
+        ev, self._events = self._events, []
+        return ev
+
+    def _event(self, kind: str, detail: str = "", summary: dict[str, Any] | None = None) -> None:
+        spec = self.step_spec
+        self._events.append(
+            TaskEventRecord(
+                kind, spec.name if spec else "", max(self.index, 0), self._tick, self._now_ns, detail, summary
+            )
+        )
+
+    # ------------------------------------------------------------------ the control step
+    def step(
+        self,
+        now_ns: int,
+        x: NDArray[np.float64],
+        v: NDArray[np.float64],
+        quat: NDArray[np.float64],
+        dt: float,
+        *,
+        tick: int = 0,
+        measured_accel: NDArray[np.float64] | None = None,
+    ) -> PlannerOutput:
+        """The command for the arm state at ``now_ns`` [ns]: EE position ``x (3,)`` [m], velocity
+        ``v (3,)`` [m/s], orientation ``quat (4,)`` xyzw; ``dt`` [s] the control period;
+        ``measured_accel (3,)`` [m/s²] (for the step report)."""
+        self._tick, self._now_ns = tick, now_ns
+        if self.state == IDLE:
+            self._event("STARTED", f"task {self.task.name}: {len(self.task.steps)} steps")
+            self._start_step(0, now_ns, x, quat)
+        elif self._restart:
+            self._restart = False
+            self.reports.pop()
+            self._start_step(self.index, now_ns, x, quat)
+        speed = math.sqrt(float(v @ v))
+        self.speed = speed
+        rep = self.reports[-1] if self.reports else None
+        if self._phase in ("done", "fault"):
+            return self._hold(x, v, quat)
+        spec = self.step_spec
+        assert spec is not None and rep is not None
+        goal, goal_vel, why = self.goals.resolve(spec, now_ns)
+        if goal is None:
+            out = self._unavailable(why, now_ns, x, v, quat, dt)
+        else:
+            out = self._available(spec, rep, goal, goal_vel, now_ns, x, v, quat, dt)
+        if rep.outcome == "running":
+            rep.peak_speed_mps = max(rep.peak_speed_mps, speed)
+            if measured_accel is not None:
+                rep.peak_accel_mps2 = max(
+                    rep.peak_accel_mps2, math.sqrt(float(measured_accel @ measured_accel))
+                )
+            a = out.acceleration
+            rep.peak_command_accel_mps2 = max(rep.peak_command_accel_mps2, math.sqrt(float(a @ a)))
+            if self._goal is not None:
+                d = np.abs(x - self._goal)
+                np.maximum(rep.max_dist, d, out=rep.max_dist)
+            err = _angle_deg(quat, out.orientation)
+            if self._phase == "run" and err > rep.max_orientation_error_deg:
+                rep.max_orientation_error_deg = err
+        self._last_quat, self._last_omega = out.orientation, out.angular_velocity
+        return out
+
+    def _available(
+        self,
+        spec: StepSpec,
+        rep: StepReport,
+        goal: NDArray[np.float64],
+        goal_vel: NDArray[np.float64],
+        now_ns: int,
+        x: NDArray[np.float64],
+        v: NDArray[np.float64],
+        quat: NDArray[np.float64],
+        dt: float,
+    ) -> PlannerOutput:
+        if self._phase in ("hold", "neutral"):
+            self._resume(spec, now_ns, x, quat)
+        ctrl = self._ctrl
+        assert ctrl is not None
+        if self._goal is None or not np.array_equal(goal, self._goal):
+            ctrl.set_goal(goal)
+            self._goal = goal
+            if (
+                self._event_goal is None
+                or float(np.linalg.norm(goal - self._event_goal)) >= self.task.goal_event_m
+            ):
+                self._event_goal = goal.copy()
+                self._event("GOAL_CHANGED", f"{spec.goal} at {np.round(goal, 3).tolist()}")
+        self._goal_velocity = goal_vel
+        acc = ctrl.step(x, v, dt)
+        seg = tuple(int(s) for s in ctrl.segment)
+        if seg != self._segments:
+            changed = [
+                f"{'xyz'[d]}:{a}->{b}"
+                for d, (a, b) in enumerate(zip(self._segments, seg, strict=False))
+                if a != b
+            ]
+            if self._segments:
+                self._event("SEGMENT_CHANGED", " ".join(changed))
+            self._segments = seg
+        q, omega = self._orientation(ctrl)
+        err = goal - x
+        self.distance = math.sqrt(float(err @ err))
+        dv = v - goal_vel
+        rel_speed = math.sqrt(float(dv @ dv))
+        reached = self.distance <= spec.position_tolerance_m and rel_speed <= spec.velocity_tolerance_mps
+        if self._phase == "run" and reached:
+            self._phase, self._phase_since_ns = "dwell", now_ns
+            rep.reached_ns = now_ns
+            rep.position_error_m, rep.velocity_error_mps = self.distance, rel_speed
+        if self._phase == "dwell":
+            rep.follow_sq += self.distance * self.distance
+            rep.follow_n += 1
+            rep.follow_max_m = max(rep.follow_max_m, self.distance)
+            wait = spec.dwell_s + (spec.follow_s if spec.live else 0.0)
+            if (now_ns - self._phase_since_ns) * 1e-9 >= wait - 1e-9:
+                if not spec.live:  # a static goal: the error after the dwell
+                    rep.position_error_m, rep.velocity_error_mps = self.distance, rel_speed
+                self._finish_step(now_ns, x, quat, success=True, outcome="reached")
+        elif self._timed_out(spec, rep, now_ns):
+            rep.position_error_m, rep.velocity_error_mps = self.distance, rel_speed
+            self._fail(
+                f"step {spec.name} timed out after {(now_ns - rep.start_ns) * 1e-9:.1f} s "
+                f"({self.distance:.3f} m from the goal)"
+            )
+            return self._hold(x, v, quat)
+        return PlannerOutput(np.asarray(acc, dtype=float), q, omega)
+
+    def _unavailable(
+        self,
+        why: str,
+        now_ns: int,
+        x: NDArray[np.float64],
+        v: NDArray[np.float64],
+        quat: NDArray[np.float64],
+        dt: float,
+    ) -> PlannerOutput:
+        rep = self.reports[-1]
+        if self._phase in ("run", "dwell"):
+            mode = self.task.on_goal_lost
+            self._phase, self._phase_since_ns = ("neutral" if mode == "neutral" else "hold"), now_ns
+            self._hold_target = None
+            self._neutral_ctrl = None
+            if not why.startswith("waiting"):
+                self._event("GOAL_LOST", why)
+            self._event("PAUSED", f"{why}: {'going to neutral' if mode == 'neutral' else 'holding'}")
+        self.state, self.detail = HOLDING, why
+        rep.hold_s += dt
+        if self._phase == "neutral":
+            if self._neutral_ctrl is None:
+                model = self.models[self.task.neutral_model]
+                self._neutral_ctrl = model.controller(self.goals.static[self.task.neutral], start_shift=True)
+            acc = self._neutral_ctrl.step(x, v, dt)
+            return PlannerOutput(np.asarray(acc, dtype=float), self._last_quat, np.zeros(3))
+        return self._hold(x, v, quat)
+
+    # ------------------------------------------------------------------ transitions
+    def _start_step(self, index: int, now_ns: int, x: NDArray[np.float64], quat: NDArray[np.float64]) -> None:
+        self.index = index
+        spec = self.task.steps[index]
+        model = self.models[spec.name]
+        goal, _vel, _why = self.goals.resolve(spec, now_ns)
+        self._ctrl = model.controller(goal if goal is not None else model.goal, **spec.controller)
+        self._goal = goal
+        self._event_goal = None if goal is None else goal.copy()
+        self._segments = ()
+        profile = self.profiles.get(spec.name)
+        if spec.orientation == "hold" or profile is None:
+            profile = OrientationProfile.constant(quat)
+        self._orient = OrientationTracker(profile, quat)
+        # The reference dimension's t_e drives the orientation; if it does not move in this
+        # step (a hold dimension), the slowest dimension's t_e does.
+        d = self.task.orientation_dim
+        self._orient_dim = -1 if d in model.hold_dimensions else d
+        self._phase, self._phase_since_ns = "run", now_ns
+        self._hold_target = None
+        self.state, self.detail = RUNNING, ""
+        x = np.asarray(x, dtype=float)
+        rep = StepReport(spec.name, index, spec.goal, now_ns, x.copy(), self.demos.get(spec.name))
+        if goal is not None:
+            rep.set_goal(goal, x)
+        self.reports.append(rep)
+        self._event(
+            "STARTED",
+            f"step {spec.name} towards {spec.goal}"
+            + (f" at {np.round(goal, 3).tolist()}" if goal is not None else " (waiting for it)"),
+        )
+
+    def _resume(self, spec: StepSpec, now_ns: int, x: NDArray[np.float64], quat: NDArray[np.float64]) -> None:
+        """The goal is back: after a hold the same PSM resumes from the current state; after a
+        detour to neutral the step starts afresh from there."""
+        rep = self.reports[-1]
+        if self._phase == "neutral":
+            model = self.models[spec.name]
+            goal, _v, _w = self.goals.resolve(spec, now_ns)
+            self._ctrl = model.controller(goal, **spec.controller)
+            self._orient = OrientationTracker(
+                self._orient.profile if self._orient else OrientationProfile.constant(quat), quat
+            )
+            self._segments = ()
+        if not rep.has_goal:
+            goal, _v, _w = self.goals.resolve(spec, now_ns)
+            if goal is not None:
+                rep.set_goal(goal, x)
+        self._phase, self._phase_since_ns = "run", now_ns
+        self._hold_target = None
+        self.state, self.detail = RUNNING, ""
+        self._event("RESUMED", f"goal {spec.goal} available")
+
+    def _finish_step(
+        self, now_ns: int, x: NDArray[np.float64], quat: NDArray[np.float64], *, success: bool, outcome: str
+    ) -> None:
+        spec = self.step_spec
+        assert spec is not None
+        rep = self.reports[-1]
+        rep.end_ns, rep.success, rep.outcome = now_ns, success, outcome
+        if self._goal is not None:
+            rep.goal = self._goal.copy()
+        if spec.gripper:
+            self._event("GRIPPER", spec.gripper)
+        self._event("STEP_COMPLETED", f"step {spec.name} {outcome}", rep.summary())
+        if self.index + 1 < len(self.task.steps):
+            self._start_step(self.index + 1, now_ns, x, quat)
+        else:
+            self._phase, self.state, self.detail = "done", DONE, ""
+            self._hold_target = np.asarray(x, dtype=float).copy()
+            self._hold_quat = self._last_quat
+            self._event("COMPLETED", f"task {self.task.name} completed", self.summary())
+
+    def _fail(self, why: str) -> None:
+        rep = self.reports[-1]
+        rep.end_ns, rep.success, rep.outcome = self._now_ns, False, "timeout"
+        self._phase, self.state, self.detail = "fault", FAULT, why
+        self._hold_target = None
+        self._event("ABORTED", why, self.summary())
+
+    def _timed_out(self, spec: StepSpec, rep: StepReport, now_ns: int) -> bool:
+        limit = spec.timeout_s or (3.0 * self.models[spec.name].demo_duration + 5.0)
+        return (now_ns - rep.start_ns) * 1e-9 - rep.hold_s > limit
+
+    # ------------------------------------------------------------------ laws
+    def _orientation(self, ctrl: PSMController) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        assert self._orient is not None
+        te = ctrl.time_to_go
+        ref = float(np.max(te)) if self._orient_dim < 0 else float(te[self._orient_dim])
+        return self._orient.update(ref)
+
+    def _hold(
+        self, x: NDArray[np.float64], v: NDArray[np.float64], quat: NDArray[np.float64]
+    ) -> PlannerOutput:
+        """Critically damped stop at the stopping point ``x + v/ω`` (no reversal), limited to
+        ``hold_max_accel``; the orientation reference is kept."""
+        if self._hold_target is None:
+            self._hold_target = np.asarray(x, dtype=float) + np.asarray(v, dtype=float) / self.task.hold_omega
+            self._hold_quat = self._last_quat
+        a = self._kp * (self._hold_target - x) - self._kd * v
+        n = math.sqrt(float(a @ a))
+        if n > self.task.hold_max_accel:
+            a = a * (self.task.hold_max_accel / n)
+        q = self._hold_quat if self._hold_quat is not None else np.asarray(quat, dtype=float)
+        return PlannerOutput(a, q, np.zeros(3))
+
+    # ------------------------------------------------------------------ reporting
+    def summary(self) -> dict[str, Any]:
+        """The task's figures: per step (:meth:`StepReport.summary`) and overall."""
+        steps = [r.summary() for r in self.reports]
+        done = [r for r in self.reports if r.end_ns]
+        return {
+            "task": self.task.name,
+            "state": self.state,
+            "detail": self.detail,
+            "steps_total": len(self.task.steps),
+            "steps_succeeded": sum(1 for r in self.reports if r.success),
+            "success": self.state == DONE and all(r.success for r in self.reports),
+            "duration_s": (done[-1].end_ns - self.reports[0].start_ns) * 1e-9 if done else None,
+            "steps": steps,
+        }
+
+    def summary_json(self) -> str:
+        """:meth:`summary` as compact JSON."""
+        return json.dumps(self.summary(), separators=(",", ":"), default=float)
+
+
+def _angle_deg(q1: NDArray[np.float64], q2: NDArray[np.float64]) -> float:
+    """Angle between two unit quaternions, degrees."""
+    d = abs(float(np.dot(q1, q2)))
+    return math.degrees(2.0 * math.acos(min(1.0, d)))

@@ -1,0 +1,414 @@
+"""The ``psm plan`` service: the task sequencer on the bus.
+
+Every :class:`~services.bus.messages.ArmState` on ``<prefix>/arm/state`` is answered with one
+Cartesian :class:`~services.bus.messages.ArmCommand` on ``<prefix>/arm/command`` echoing the
+state's tick: the active step's PSM acceleration per dimension, the orientation reference that
+follows the reference dimension's ``t_e`` and its angular velocity
+(:class:`~services.planner.sequencer.TaskRunner`). Live goals come from ``<prefix>/goals/*``.
+
+Published besides the commands:
+
+* ``<prefix>/planner/status`` — :class:`PlannerStatus` at ``status_rate_hz``: state (running,
+  holding and why, done, fault), the step, segment and ``t_e`` per dimension, goal in use,
+  distance to it, speed, the orientation reference, state→command latency percentiles over the
+  last period, counts of answered and rejected inputs;
+* ``<prefix>/task/events`` — :class:`TaskEvent` for every transition (step started, segment
+  changed, goal changed or lost, paused, resumed, gripper, step completed, task completed or
+  aborted; the completions carry their figures as JSON);
+* ``<prefix>/gripper/command`` — :class:`GripperCommand` where the task asks for one.
+
+Threads: the state is handled on Zenoh's receive thread (decode into a reused message, checks,
+the controller step, encode into a reused command, ``put``: no queue hop, no allocation beyond
+a few small arrays); goals arrive on a subscription worker; both take one lock. Events and
+status are published by the service's loop thread, off the control path.
+
+Bad input never moves the arm: an undecodable state, a state with non-finite values, a tick
+that goes back or jumps ahead by more than ``max_tick_gap``, or a stamp that disagrees with
+``tick × dt`` is rejected (counted, logged rate-limited) and not answered; a malformed goal, a
+non-finite one, one in another frame or outside the workspace is rejected and never used. A
+state that repeats the last answered one exactly (a lockstep arm re-offering it) gets the same
+command again. After ``resync_after`` rejected states in a row the planner follows the new
+stream (an arm that restarted) and the active step restarts from its state.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.bus.messages import (
+    ArmCommand,
+    ArmState,
+    Goal,
+    GripperCommand,
+    PlannerStatus,
+    TaskEvent,
+    encoding_for,
+)
+from services.bus.runtime import Service, ServiceApp, run_service
+from services.planner.config import PlannerConfig
+from services.planner.models import DEMOS_DIR, ModelCache, load_task_models
+from services.planner.sequencer import TaskRunner
+from services.threads import limit_blas_threads
+
+SERVICE_NAME = "planner"
+
+_LAT_RING = 4096  # latency samples kept between two status messages (at most ~8 s at 500 Hz)
+
+_STATES = {
+    "IDLE": PlannerStatus.IDLE,
+    "RUNNING": PlannerStatus.RUNNING,
+    "HOLDING": PlannerStatus.HOLDING,
+    "DONE": PlannerStatus.DONE,
+    "FAULT": PlannerStatus.FAULT,
+}
+
+
+class PlannerService(ServiceApp):
+    """The planner process (see the module docstring). Built without the bus: the task file is
+    read and every step's model learned (or read from the cache) before the process joins."""
+
+    name = SERVICE_NAME
+    svc: Service
+
+    def __init__(self, config: PlannerConfig) -> None:
+        super().__init__(config)
+        from services.arm.service import set_realtime_priority
+        from services.tasks.feeding import load_feeding
+
+        limit_blas_threads(1)
+        self.config: PlannerConfig = config
+        sec = config.planner
+        # Before the bus opens, so Zenoh's threads (the state is answered on one) inherit it.
+        self._rt_problem = set_realtime_priority(sec.rt_priority)
+        self.task_config = load_feeding(sec.task_path())
+        cache = ModelCache(Path(sec.cache_dir)) if sec.cache_dir else None
+        demos = Path(sec.demos_dir) if sec.demos_dir else DEMOS_DIR
+        self.models = load_task_models(self.task_config.task, cache, demos)
+        scene = self.task_config.scene
+        self.runner = TaskRunner(
+            self.task_config.task,
+            scene.positions(),
+            self.models.models,
+            self.models.profiles,
+            self.models.demos,
+        )
+        self.frame_id = scene.frame_id
+        self._lock = threading.Lock()
+        self._state = ArmState()
+        self._cmd = ArmCommand(
+            mode=ArmCommand.CARTESIAN_ACCELERATION,
+            source=sec.source,
+            frame_id=scene.frame_id,
+            has_angular_velocity_reference=True,
+        )
+        self._state_encoding = encoding_for(ArmState)
+        self._last_tick = -1
+        self._last_stamp = 0
+        self._last_reply = b""
+        self._reject_run = 0
+        self._seq = 0
+        self.answered = 0
+        self.rejected_states = 0
+        self.duplicate_states = 0
+        self._lat = np.zeros(_LAT_RING, dtype=np.int64)
+        self._n_lat = 0
+        self._lat_all: list[float] = []  # every latency, µs, for the summary percentiles
+        self._events: deque[Any] = deque()
+        self._ended_at: float | None = None
+        self._x = np.zeros(3)
+        self._v = np.zeros(3)
+        self._a = np.zeros(3)
+        self._q = np.zeros(4)
+
+    # ------------------------------------------------------------------ setup
+    def setup(self, svc: Service) -> None:
+        """Declare the command, status, event and gripper publishers, the state subscriber (on
+        Zenoh's thread) and the goal subscription."""
+        import zenoh
+
+        self.svc = svc
+        keys = svc.keys
+        if self._rt_problem:
+            svc.log.warning(self._rt_problem + "; running with normal scheduling")
+        self._cmd_pub = svc.publisher(keys.arm_command)
+        self._status_pub = svc.publisher(keys.planner_status)
+        self._event_pub = svc.publisher(keys.task_events)
+        self._gripper_pub = svc.publisher(keys.gripper_command)
+        self._state_key = keys.arm_state.key
+        sub = svc.session.declare_subscriber(
+            self._state_key, zenoh.handlers.Callback(self._on_state, indirect=False)
+        )
+        svc.on_close(sub.undeclare)
+        self._goals_prefix = keys.goals_all.key[:-1]
+        svc.subscribe(keys.goals_all, self._on_goal)
+        task = self.task_config.task
+        svc.log.info(
+            "planner ready",
+            extra={"task": task.name, "steps": ",".join(task.sequence), "models": len(self.models.models)},
+        )
+
+    # ------------------------------------------------------------------ inputs
+    def _reject_state(self, reason: str) -> None:
+        self.rejected_states += 1
+        self._reject_run += 1
+        self.svc.record_rejection(self._state_key, reason)
+
+    def _on_state(self, sample: Any) -> None:
+        """Zenoh's receive thread: answer the state (see the module docstring)."""
+        t_recv = time.perf_counter_ns()
+        payload = sample.payload.to_bytes()
+        if str(sample.encoding) != self._state_encoding:
+            with self._lock:
+                self._reject_state(f"encoding {sample.encoding} is not psm.ArmState")
+            return
+        with self._lock:
+            st = self._state
+            try:
+                st.ParseFromString(payload)
+            except Exception as exc:
+                self._reject_state(f"malformed ArmState ({len(payload)} bytes): {exc}")
+                return
+            self.svc.counters.add("received")
+            reply = self._answer(st)
+            if reply is None:
+                return
+            self._cmd_pub.put_bytes(reply)
+            lat = time.perf_counter_ns() - t_recv
+            self._lat[self._n_lat % _LAT_RING] = lat
+            self._n_lat += 1
+            if len(self._lat_all) < 2_000_000:
+                self._lat_all.append(lat * 1e-3)
+
+    def _answer(self, st: ArmState) -> bytes | None:
+        """The command bytes answering ``st``, or None when it is rejected (under the lock)."""
+        tick, stamp = int(st.tick), int(st.stamp_ns)
+        sec = self.config.planner
+        if tick == self._last_tick and stamp == self._last_stamp and self._last_reply:
+            self.duplicate_states += 1
+            return self._last_reply
+        p, v, o, a = st.ee_position, st.ee_linear_velocity, st.ee_orientation, st.ee_linear_acceleration
+        x = self._x
+        x[0], x[1], x[2] = p.x, p.y, p.z
+        vv = self._v
+        vv[0], vv[1], vv[2] = v.x, v.y, v.z
+        q = self._q
+        q[0], q[1], q[2], q[3] = o.x, o.y, o.z, o.w
+        acc = self._a
+        acc[0], acc[1], acc[2] = a.x, a.y, a.z
+        dt = float(st.dt_s)
+        if not (math.isfinite(dt) and dt > 0.0):
+            self._reject_state(f"tick {tick}: dt_s {dt} is not a positive number")
+            return None
+        if not (np.isfinite(x).all() and np.isfinite(vv).all() and np.isfinite(q).all()):
+            self._reject_state(f"tick {tick}: non-finite end-effector state")
+            return None
+        nq = math.sqrt(float(q @ q))
+        if abs(nq - 1.0) > 0.01:
+            self._reject_state(f"tick {tick}: orientation quaternion norm {nq:.3g}")
+            return None
+        if self._last_tick >= 0:
+            gap = tick - self._last_tick
+            problem = ""
+            if gap <= 0:
+                problem = f"tick {tick} does not follow the last answered tick {self._last_tick}"
+            elif gap > sec.max_tick_gap:
+                problem = f"tick jumped from {self._last_tick} to {tick} (more than {sec.max_tick_gap})"
+            elif abs((stamp - self._last_stamp) - gap * dt * 1e9) > sec.stamp_tolerance_s * 1e9:
+                problem = (
+                    f"tick {tick}: stamp {(stamp - self._last_stamp) * 1e-9:.4f} s after the last, "
+                    f"expected {gap * dt:.4f} s"
+                )
+            if problem:
+                if self._reject_run + 1 < sec.resync_after:
+                    self._reject_state(problem)
+                    return None
+                self.svc.log.warning("following a new arm state stream", extra={"reason": problem})
+                self.runner.restart_step()
+        self._reject_run = 0
+        out = self.runner.step(stamp, x, vv, q, dt, tick=tick, measured_accel=acc)
+        self._events.extend(self.runner.drain_events())
+        cmd = self._cmd
+        self._seq += 1
+        cmd.stamp_ns, cmd.tick, cmd.seq = stamp, tick, self._seq
+        la, oa, wa = out.acceleration, out.orientation, out.angular_velocity
+        c = cmd.linear_acceleration
+        c.x, c.y, c.z = float(la[0]), float(la[1]), float(la[2])
+        r = cmd.orientation_reference
+        r.x, r.y, r.z, r.w = float(oa[0]), float(oa[1]), float(oa[2]), float(oa[3])
+        w = cmd.angular_velocity_reference
+        w.x, w.y, w.z = float(wa[0]), float(wa[1]), float(wa[2])
+        reply = cmd.SerializeToString()
+        self._last_tick, self._last_stamp, self._last_reply = tick, stamp, reply
+        self.answered += 1
+        return reply
+
+    def _on_goal(self, msg: Goal, key: str) -> None:
+        name = msg.name or key[len(self._goals_prefix) :]
+        p = msg.position
+        with self._lock:
+            if msg.frame_id and msg.frame_id != self.frame_id:
+                self.runner.goals.rejected += 1
+                self.svc.record_rejection(
+                    key, f"goal {name} in frame {msg.frame_id!r}, expected {self.frame_id!r}"
+                )
+                return
+            problem = self.runner.update_goal(
+                name, (p.x, p.y, p.z), int(msg.stamp_ns), bool(msg.valid), msg.invalid_reason
+            )
+        if problem:
+            self.svc.record_rejection(key, f"goal {name}: {problem}")
+
+    # ------------------------------------------------------------------ loop
+    def loop(self, svc: Service) -> None:
+        """Publish the status at ``status_rate_hz`` and the events as they come; stop after the
+        task ends when ``exit_when_done``."""
+        sec = self.config.planner
+        period = 1.0 / sec.status_rate_hz
+        next_t = time.monotonic()
+        while not svc.stop_event.is_set():
+            next_t += period
+            svc.wait(max(0.0, next_t - time.monotonic()))
+            self._publish_events()
+            self._publish_status()
+            if self.runner.state in ("DONE", "FAULT") and sec.exit_when_done:
+                if self._ended_at is None:
+                    self._ended_at = time.monotonic()
+                    svc.log.info(
+                        "task ended", extra={"state": self.runner.state, "detail": self.runner.detail}
+                    )
+                elif time.monotonic() - self._ended_at >= sec.linger_s:
+                    break
+        self._publish_events()
+        self._publish_status()
+
+    def _publish_events(self) -> None:
+        task = self.task_config.task.name
+        while self._events:
+            ev = self._events.popleft()
+            msg = TaskEvent(
+                stamp_ns=ev.stamp_ns,
+                task=task,
+                kind=getattr(TaskEvent, ev.kind),
+                detail=ev.detail,
+                step=ev.step,
+                step_index=ev.step_index,
+                state_tick=max(0, ev.tick),
+                summary_json=json.dumps(ev.summary, default=float) if ev.summary else "",
+            )
+            self._event_pub.put(msg)
+            if ev.kind == "GRIPPER":
+                action = GripperCommand.CLOSE if ev.detail == "close" else GripperCommand.OPEN
+                self._gripper_pub.put(
+                    GripperCommand(
+                        stamp_ns=ev.stamp_ns, action=action, step=ev.step, source=self.config.planner.source
+                    )
+                )
+            if ev.kind in (
+                "STARTED",
+                "STEP_COMPLETED",
+                "COMPLETED",
+                "ABORTED",
+                "GOAL_LOST",
+                "RESUMED",
+                "GRIPPER",
+            ):
+                self.svc.log.info(f"{ev.kind.lower()}: {ev.detail}", extra={"tick": ev.tick})
+
+    def _publish_status(self) -> None:
+        with self._lock:
+            r = self.runner
+            ctrl = r.controller
+            n = min(self._n_lat, _LAT_RING)
+            lat = np.sort(self._lat[:n]) * 1e-3 if n else None
+            self._n_lat = 0
+            spec = r.step_spec
+            msg = PlannerStatus(
+                stamp_ns=self._last_stamp,
+                state=_STATES[r.state],
+                task=r.task.name,
+                state_tick=max(0, self._last_tick),
+                detail=r.detail,
+                step=spec.name if spec else "",
+                step_index=max(0, r.index),
+                step_count=len(r.task.steps),
+                distance_to_goal_m=r.distance if math.isfinite(r.distance) else 0.0,
+                speed_mps=r.speed,
+                answered=self.answered,
+                rejected_states=self.rejected_states,
+                rejected_goals=r.goals.rejected,
+                goal_name=spec.goal if spec else "",
+                step_elapsed_s=(self._last_stamp - r.reports[-1].start_ns) * 1e-9 if r.reports else 0.0,
+                goal_speed_mps=float(np.linalg.norm(r._goal_velocity)),
+            )
+            if ctrl is not None:
+                msg.segment_index.extend(int(s) for s in ctrl.segment)
+                msg.time_to_go_s.extend(float(t) for t in ctrl.time_to_go)
+                msg.mode.extend(ctrl.modes)
+            if r.goal is not None:
+                g = r.goal
+                msg.goal.x, msg.goal.y, msg.goal.z = float(g[0]), float(g[1]), float(g[2])
+            q = r._last_quat
+            o = msg.orientation_reference
+            o.x, o.y, o.z, o.w = (float(c) for c in q)
+            if lat is not None:
+                msg.latency_p50_us = float(lat[n // 2])
+                msg.latency_p99_us = float(lat[min(n - 1, int(0.99 * n))])
+                msg.latency_max_us = float(lat[-1])
+        self._status_pub.put(msg)
+
+    # ------------------------------------------------------------------ end
+    def summary(self) -> dict[str, Any]:
+        """The task summary plus the planner's own counters and latency percentiles [µs]."""
+        with self._lock:
+            out = self.runner.summary()
+            lat = np.asarray(self._lat_all) if self._lat_all else None
+            out["planner"] = {
+                "answered": self.answered,
+                "rejected_states": self.rejected_states,
+                "duplicate_states": self.duplicate_states,
+                "rejected_goals": self.runner.goals.rejected,
+            }
+        if lat is not None:
+            p50, p99, p999 = np.percentile(lat, [50, 99, 99.9])
+            out["planner"]["latency_us"] = {
+                "p50": float(p50),
+                "p99": float(p99),
+                "p99.9": float(p999),
+                "max": float(lat.max()),
+                "n": int(lat.size),
+            }
+        return out
+
+    def teardown(self, svc: Service) -> None:
+        """Log the outcome and write the summary file."""
+        s = self.summary()
+        svc.log.info(
+            "planner stopped",
+            extra={
+                "state": s["state"],
+                "steps_succeeded": s["steps_succeeded"],
+                "answered": self.answered,
+                "rejected_states": self.rejected_states,
+            },
+        )
+        path = self.config.planner.summary_file
+        if path:
+            Path(path).parent.mkdir(parents=True, exist_ok=True)
+            tmp = Path(path).with_suffix(".tmp")
+            tmp.write_text(json.dumps(s, indent=2, default=float))
+            with contextlib.suppress(OSError):
+                tmp.replace(path)
+
+
+def main(config: PlannerConfig) -> int:
+    """Run the planner with a loaded config; returns the exit code."""
+    return run_service(PlannerService(config))
