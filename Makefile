@@ -29,6 +29,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.arm
 	$(PY) -m benchmarks.goal_tracker
 	$(PY) -m benchmarks.stack
+	$(PY) -m benchmarks.peers
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache
