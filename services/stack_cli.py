@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 from typing import Any
 
 __all__ = ["register"]
@@ -23,7 +24,9 @@ def _cmd_up(args: argparse.Namespace) -> int:
     stack = load_stack(args.stack or DEFAULT_STACK, overrides=parsed)
     if args.record and not any(p.command[:1] == ["record"] for p in stack.processes):
         raise ConfigError("recorder.output", "--record needs a recorder process in the stack")
-    env = {env_var_name(k): v for k, v in overrides.items()}
+    # The processes read the overrides from their environment: a string as itself, anything
+    # else as JSON (how pydantic-settings reads lists and tables from the environment).
+    env = {env_var_name(k): v if isinstance(v, str) else json.dumps(v) for k, v in parsed.items()}
     if args.check:
         print(f"{stack.path}: valid; processes: {', '.join(p.name for p in stack.processes)}")
         return 0

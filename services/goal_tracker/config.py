@@ -90,6 +90,11 @@ class CameraSection(Section):
         description="publish JPEG frames at most this often (frame time), 0 = never",
     )
     jpeg_quality: int = Field(80, ge=1, le=100, description="JPEG quality of published frames")
+    topic_max_pending: int = Field(
+        256, ge=1, le=10000,
+        description="source = topic: frames kept waiting when the tracker falls behind (oldest dropped); "
+        "1-2 for a live stack (always a recent frame), large to analyse every frame of a replay",
+    )
     stall_timeout_s: float = Field(
         2.0, gt=0.0,
         description="no frame for this long (wall clock) -> goal invalid",

@@ -222,7 +222,7 @@ class GoalTrackerService(ServiceApp):
         if source is None and cam.source == "synthetic":
             source = _synthetic_on_bus(svc, sec)
         elif source is None:
-            queue_source = QueueSource(f"topic {keys.camera_image(cam.camera_id).key}")
+            queue_source = QueueSource(f"topic {keys.camera_image(cam.camera_id).key}", cam.topic_max_pending)
 
             def on_image(msg: CompressedImage, key: str) -> None:
                 try:
