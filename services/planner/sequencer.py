@@ -445,6 +445,13 @@ class TaskRunner:
             rep.reached_ns = now_ns
             rep.position_error_m, rep.velocity_error_mps = self.distance, rel_speed
         if self._phase == "dwell":
+            if spec.live:
+                # Following a live goal once reached: a critically damped tracker with the
+                # goal's velocity as feed-forward (no lag behind a goal moving steadily).
+                acc = self._kp * err + self._kd * (goal_vel - v)
+                n = math.sqrt(float(acc @ acc))
+                if n > self.task.hold_max_accel:
+                    acc = acc * (self.task.hold_max_accel / n)
             rep.follow_sq += self.distance * self.distance
             rep.follow_n += 1
             rep.follow_max_m = max(rep.follow_max_m, self.distance)

@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 from services.supervisor import ManagedProcess, free_port, psm_argv
@@ -24,15 +25,27 @@ def _up(tmp_path: Path, *sets: str, timeout_s: float = 240.0) -> tuple[int, str,
     port = free_port()
     run = tmp_path / "run"
     args = [
-        "up", str(STACK), "--clock", "lockstep", "--no-live",
-        "--set", f"prefix=\"feed{port}\"",
-        "--set", f"router.listen=[\"tcp/127.0.0.1:{port}\"]",
-        "--set", f"zenoh.connect=[\"tcp/127.0.0.1:{port}\"]",
-        "--set", f"stack.run_dir=\"{run}\"",
-        "--set", f"recorder.output=\"{tmp_path / 'run.mcap'}\"",
-        "--set", f"planner.summary_file=\"{run / 'task.json'}\"",
-        "--set", f"arm.stats_file=\"{run / 'arm.json'}\"",
-        "--set", f"planner.cache_dir=\"{ROOT / 'out' / 'models'}\"",
+        "up",
+        str(STACK),
+        "--clock",
+        "lockstep",
+        "--no-live",
+        "--set",
+        f'prefix="feed{port}"',
+        "--set",
+        f'router.listen=["tcp/127.0.0.1:{port}"]',
+        "--set",
+        f'zenoh.connect=["tcp/127.0.0.1:{port}"]',
+        "--set",
+        f'stack.run_dir="{run}"',
+        "--set",
+        f'recorder.output="{tmp_path / "run.mcap"}"',
+        "--set",
+        f'planner.summary_file="{run / "task.json"}"',
+        "--set",
+        f'arm.stats_file="{run / "arm.json"}"',
+        "--set",
+        f'planner.cache_dir="{ROOT / "out" / "models"}"',
     ]
     for s in sets:
         args += ["--set", s]
@@ -62,7 +75,7 @@ def test_the_feeding_task_completes_through_the_stack(tmp_path: Path, start_pose
     from services.bus.log import read_log
     from services.bus.messages import ArmCommand, ArmState, TaskEvent
 
-    rc, log, summary = _up(tmp_path, f"arm.start_pose=\"{start_pose}\"")
+    rc, log, summary = _up(tmp_path, f'arm.start_pose="{start_pose}"')
     assert rc == 0, log
     _check_task(summary, log)
     assert "task feeding: 5/5 steps, succeeded" in log and "recording:" in log
@@ -78,9 +91,19 @@ def test_the_feeding_task_completes_through_the_stack(tmp_path: Path, start_pose
             commands.append(int(msg.tick))
         elif isinstance(msg, TaskEvent):
             events.append(msg)
-    for topic in ("arm/state", "arm/command", "arm/transforms", "camera/cam0/image", "goals/person",
-                  "planner/status", "task/events", "gripper/command", "status/arm", "status/planner",
-                  "status/goal_tracker"):
+    for topic in (
+        "arm/state",
+        "arm/command",
+        "arm/transforms",
+        "camera/cam0/image",
+        "goals/person",
+        "planner/status",
+        "task/events",
+        "gripper/command",
+        "status/arm",
+        "status/planner",
+        "status/goal_tracker",
+    ):
         assert topic in topics, sorted(topics)
     # Every command answers a recorded state, and (lockstep) every state but the planner-less
     # ones at the start and the end is answered.
@@ -104,9 +127,78 @@ def test_the_person_lost_holds_the_motion_and_it_resumes(tmp_path: Path) -> None
     for _key, msg, _t in read_log(tmp_path / "run.mcap"):
         if isinstance(msg, TaskEvent):
             kinds.append((TaskEvent.Kind.Name(msg.kind), msg.step))
-        elif isinstance(msg, PlannerStatus) and msg.state == PlannerStatus.HOLDING and msg.step == "reach_person":
+        elif (
+            isinstance(msg, PlannerStatus)
+            and msg.state == PlannerStatus.HOLDING
+            and msg.step == "reach_person"
+        ):
             holding_speeds.append(msg.speed_mps)
     assert ("GOAL_LOST", "reach_person") in kinds and ("RESUMED", "reach_person") in kinds, kinds
     assert kinds.index(("GOAL_LOST", "reach_person")) < kinds.index(("RESUMED", "reach_person"))
     # While holding the arm comes to rest.
     assert holding_speeds and min(holding_speeds) < 0.01, holding_speeds
+
+
+def test_the_planner_killed_mid_motion_leaves_the_arm_braked_to_rest(tmp_path: Path) -> None:
+    """Realtime stack; SIGKILL of the planner while the arm moves: the arm brakes to rest at
+    once (the planner's liveliness token is watched; else its watchdog), the stack reports it."""
+    import os
+    import signal
+    import time
+
+    from services.bus.log import read_log
+    from services.bus.messages import ArmState
+
+    port = free_port()
+    run = tmp_path / "run"
+    args = [
+        "up",
+        str(STACK),
+        "--no-live",
+        "--set",
+        f'prefix="kill{port}"',
+        "--set",
+        f'router.listen=["tcp/127.0.0.1:{port}"]',
+        "--set",
+        f'zenoh.connect=["tcp/127.0.0.1:{port}"]',
+        "--set",
+        f'stack.run_dir="{run}"',
+        "--set",
+        f'recorder.output="{tmp_path / "run.mcap"}"',
+        "--set",
+        f'planner.cache_dir="{ROOT / "out" / "models"}"',
+    ]
+    up = ManagedProcess("up", psm_argv(args), tmp_path / "up.log", cwd=ROOT)
+    killed_ns = 0
+    try:
+        deadline = time.monotonic() + 90
+        pid = None
+        while time.monotonic() < deadline and pid is None:
+            for line in up.log_text().splitlines():
+                if line.startswith("started planner (pid "):
+                    pid = int(line.rsplit("(pid ", 1)[1].rstrip(")"))
+            time.sleep(0.1)
+        assert pid is not None, up.log_text()
+        time.sleep(2.5)  # grasp_spoon is under way
+        killed_ns = time.time_ns()
+        os.kill(pid, signal.SIGKILL)
+        rc = up.wait(60)
+    finally:
+        up.stop()
+    log = up.log_text()
+    assert rc == 1 and "planner died" in log, log
+    speed = [
+        (
+            msg.stamp_ns,
+            float(
+                np.linalg.norm([msg.ee_linear_velocity.x, msg.ee_linear_velocity.y, msg.ee_linear_velocity.z])
+            ),
+        )
+        for _k, msg, _t in read_log(tmp_path / "run.mcap")
+        if isinstance(msg, ArmState)
+    ]
+    before = [v for t, v in speed if killed_ns - 300_000_000 < t < killed_ns]
+    after = [(t - killed_ns) * 1e-9 for t, v in speed if t > killed_ns and v < 1e-3]
+    assert before and max(before) > 0.05, "the arm was not moving when the planner was killed"
+    assert after and after[0] < 0.5, after[:3]  # at rest within half a second
+    assert all(v < 1e-3 for t, v in speed if (t - killed_ns) * 1e-9 > after[0] + 0.05)
