@@ -1,5 +1,5 @@
 # Two entry points for a fresh machine (see README):
-#   make demo   -- create .venv, install, run the demo
+#   make demo   -- create .venv, install, run the feeding task (make demo CAMERA=0: a real camera)
 #   make test   -- create .venv, install, run the whole test suite
 PYTHON ?= python3
 VENV   := .venv
@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 venv: $(STAMP)
 
 demo: $(STAMP)
-	$(VENV)/bin/psm demo --out out/demo
+	$(VENV)/bin/psm up $(if $(CAMERA),--camera $(CAMERA))
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check psm services tests benchmarks scripts

@@ -58,6 +58,7 @@ __all__ = [
     "StackSection",
     "config_class",
     "load_stack",
+    "use_camera",
 ]
 
 #: The stack the README's demo runs when no stack file is given.
@@ -215,3 +216,24 @@ def load_stack(
         if isinstance(value, dict) and key not in owned:
             raise ConfigError(key, "no process of the stack reads this table")
     return Stack(path, config, processes, configs)
+
+
+def use_camera(stack: Stack) -> Stack:
+    """Run the stack's goal trackers on their own camera (``[goal_tracker.camera]`` source set
+    by the caller, e.g. ``psm up --camera 0``): the synthetic camera processes are not started
+    and the trackers' ``--source`` flags are dropped so the configured source applies.
+    Changes ``stack`` in place and returns it."""
+    keep: list[ProcessSpec] = []
+    for p in stack.processes:
+        if tuple(p.command[:2]) == ("camera", "synth"):
+            stack.configs.pop(p.name, None)
+            continue
+        if p.command[:1] == ["track"]:
+            cmd = list(p.command)
+            while "--source" in cmd:
+                i = cmd.index("--source")
+                del cmd[i : i + 2]
+            p = p.model_copy(update={"command": cmd})
+        keep.append(p)
+    stack.processes = keep
+    return stack

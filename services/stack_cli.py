@@ -12,7 +12,7 @@ __all__ = ["register"]
 
 def _cmd_up(args: argparse.Namespace) -> int:
     from services.bus.config import ConfigError, env_var_name, parse_override, set_items
-    from services.stack import DEFAULT_STACK, load_stack
+    from services.stack import DEFAULT_STACK, load_stack, use_camera
     from services.supervisor import run_stack
 
     overrides: dict[str, Any] = dict(set_items(args.set))
@@ -20,8 +20,17 @@ def _cmd_up(args: argparse.Namespace) -> int:
         overrides["clock"] = args.clock
     if args.record:
         overrides["recorder.output"] = args.record
+    if args.camera is not None:
+        if args.camera.isdigit():
+            overrides["goal_tracker.camera.source"] = "device"
+            overrides["goal_tracker.camera.device"] = args.camera
+        else:
+            overrides["goal_tracker.camera.source"] = "url"
+            overrides["goal_tracker.camera.uri"] = json.dumps(args.camera)
     parsed = {k: parse_override(v) for k, v in overrides.items()}
     stack = load_stack(args.stack or DEFAULT_STACK, overrides=parsed)
+    if args.camera is not None:
+        use_camera(stack)
     if args.record and not any(p.command[:1] == ["record"] for p in stack.processes):
         raise ConfigError("recorder.output", "--record needs a recorder process in the stack")
     # The processes read the overrides from their environment: a string as itself, anything
@@ -66,6 +75,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--live", action=argparse.BooleanOptionalAction, default=None,
                    help="live status table (default: when stdout is a terminal)")
     p.add_argument("--check", action="store_true", help="validate the stack file and exit")
+    p.add_argument("--camera", metavar="DEVICE|URL",
+                   help="a real camera for the goal tracker: a device index (0) or a stream URL "
+                   "(rtsp://...), instead of the synthetic camera")
     p.set_defaults(func=_cmd_up)
 
     s = subparsers.add_parser(

@@ -66,3 +66,14 @@ def test_errors_name_the_process_and_field(
     with pytest.raises(ConfigError) as ei:
         load_stack(path, overrides=overrides, env={})
     assert str(ei.value).startswith(expected), str(ei.value)
+
+
+def test_a_real_camera_replaces_the_synthetic_one() -> None:
+    from services.stack import DEFAULT_STACK, load_stack, use_camera
+
+    stack = use_camera(load_stack(DEFAULT_STACK, overrides={"goal_tracker.camera.source": "device"}, env={}))
+    names = [p.name for p in stack.processes]
+    assert "camera" not in names and "goal_tracker" in names and "camera" not in stack.configs
+    (tracker,) = [p for p in stack.processes if p.name == "goal_tracker"]
+    assert tracker.command == ["track"]
+    assert stack.configs["goal_tracker"].goal_tracker.camera.source == "device"  # type: ignore[attr-defined]
