@@ -30,6 +30,8 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.goal_tracker
 	$(PY) -m benchmarks.stack
 	$(PY) -m benchmarks.peers
+	$(PY) -m benchmarks.planner
+	$(PY) -m benchmarks.feeding
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache
