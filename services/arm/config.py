@@ -33,7 +33,7 @@ class ArmSection(ArmSimConfig):
     )
     accel_limits: list[float] = Field(
         default_factory=list,
-        description="joint acceleration limits [rad/s^2] (empty = Panda datasheet / 10)",
+        description="joint acceleration limits [rad/s^2] (empty = Panda datasheet; 10 for other robots)",
     )
     frame_id: str = Field("base", description="name of the robot base frame (Cartesian quantities, TF root)")
     lockstep_timeout_s: float = Field(

@@ -87,8 +87,6 @@ class PlannerService(ServiceApp):
         limit_blas_threads(1)
         self.config: PlannerConfig = config
         sec = config.planner
-        # Before the bus opens, so Zenoh's threads (the state is answered on one) inherit it.
-        self._rt_problem = set_realtime_priority(sec.rt_priority)
         self.task_config = load_feeding(sec.task_path())
         cache = ModelCache(Path(sec.cache_dir)) if sec.cache_dir else None
         demos = Path(sec.demos_dir) if sec.demos_dir else DEMOS_DIR
@@ -102,6 +100,9 @@ class PlannerService(ServiceApp):
             self.models.demos,
         )
         self.frame_id = scene.frame_id
+        # After the models are learned (never fit at real-time priority) and before the bus
+        # opens, so Zenoh's threads (the state is answered on one) inherit it.
+        self._rt_problem = set_realtime_priority(sec.rt_priority)
         self._lock = threading.Lock()
         self._state = ArmState()
         self._cmd = ArmCommand(
