@@ -758,14 +758,9 @@ def _read_json(path: Path) -> dict[str, Any]:
 
 
 def _wait_port(port: int, timeout_s: float, proc: ManagedProcess) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 0.2):
-            return
-        if not proc.alive():
-            break
-        time.sleep(0.05)
-    raise RuntimeError(f"{proc.name} does not listen on port {port}: {proc.log_tail()}")
+    from benchmarks.peers import _wait_port as wait_port
+
+    wait_port(port, timeout_s, proc)
 
 
 # --------------------------------------------------------------------------------------------

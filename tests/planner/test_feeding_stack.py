@@ -21,34 +21,29 @@ STACK = ROOT / "configs" / "stack.toml"
 STEPS = ["grasp_spoon", "back_to_neutral", "reach_bowl", "scoop", "reach_person"]
 
 
-def _up(tmp_path: Path, *sets: str, timeout_s: float = 240.0) -> tuple[int, str, dict[str, Any]]:
+def _up_args(tmp_path: Path, clock: str, *sets: str) -> list[str]:
+    """``psm up`` of the shipped stack on a free port and prefix, everything written under
+    ``tmp_path``, plus ``--set`` of each of ``sets``."""
     port = free_port()
     run = tmp_path / "run"
-    args = [
-        "up",
-        str(STACK),
-        "--clock",
-        "lockstep",
-        "--no-live",
-        "--set",
+    values = [
+        f'clock="{clock}"',
         f'prefix="feed{port}"',
-        "--set",
         f'router.listen=["tcp/127.0.0.1:{port}"]',
-        "--set",
         f'zenoh.connect=["tcp/127.0.0.1:{port}"]',
-        "--set",
         f'stack.run_dir="{run}"',
-        "--set",
         f'recorder.output="{tmp_path / "run.mcap"}"',
-        "--set",
         f'planner.summary_file="{run / "task.json"}"',
-        "--set",
         f'arm.stats_file="{run / "arm.json"}"',
-        "--set",
         f'planner.cache_dir="{ROOT / "out" / "models"}"',
+        *sets,
     ]
-    for s in sets:
-        args += ["--set", s]
+    return ["up", str(STACK), "--no-live", *(a for v in values for a in ("--set", v))]
+
+
+def _up(tmp_path: Path, *sets: str, timeout_s: float = 240.0) -> tuple[int, str, dict[str, Any]]:
+    run = tmp_path / "run"
+    args = _up_args(tmp_path, "lockstep", *sets)
     up = ManagedProcess("up", psm_argv(args), tmp_path / "up.log", cwd=ROOT)
     try:
         rc = up.wait(timeout_s)
@@ -149,25 +144,7 @@ def test_the_planner_killed_mid_motion_leaves_the_arm_braked_to_rest(tmp_path: P
     from services.bus.log import read_log
     from services.bus.messages import ArmState
 
-    port = free_port()
-    run = tmp_path / "run"
-    args = [
-        "up",
-        str(STACK),
-        "--no-live",
-        "--set",
-        f'prefix="kill{port}"',
-        "--set",
-        f'router.listen=["tcp/127.0.0.1:{port}"]',
-        "--set",
-        f'zenoh.connect=["tcp/127.0.0.1:{port}"]',
-        "--set",
-        f'stack.run_dir="{run}"',
-        "--set",
-        f'recorder.output="{tmp_path / "run.mcap"}"',
-        "--set",
-        f'planner.cache_dir="{ROOT / "out" / "models"}"',
-    ]
+    args = _up_args(tmp_path, "realtime")
     up = ManagedProcess("up", psm_argv(args), tmp_path / "up.log", cwd=ROOT)
     killed_ns = 0
     try:
