@@ -32,6 +32,16 @@ from psm.errors import DemonstrationError
 from psm.fitting import K_FIT_MODES, smooth, validate_demonstration
 
 
+def check_recording(path: Path) -> None:
+    """Raise ``LogReadError`` unless ``path`` is a complete MCAP file: never learn from the first
+    part of a motion (a truncated or corrupt recording)."""
+    from services.bus.log import LogReadError, scan_log
+
+    scan = scan_log(path)  # LogReadError if it is not MCAP at all
+    if not scan.complete:
+        raise LogReadError(f"{path}: {scan.problem}")
+
+
 def load_demonstration(
     path: Path, columns: list[str] | None = None, topic: str | None = None
 ) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -52,12 +62,9 @@ def load_demonstration(
     if suffix == ".csv":
         return _load_csv(path, columns)
     if suffix == ".mcap":
-        from services.bus.log import LogReadError, scan_log
         from services.robot.recordings import ee_trajectory
 
-        scan = scan_log(path)  # LogReadError if it is not MCAP at all
-        if not scan.complete:  # never learn from the first part of a motion
-            raise LogReadError(f"{path}: {scan.problem}")
+        check_recording(path)
         t, X = ee_trajectory(path, topic=topic)
         return t, X, ["x", "y", "z"]
     raise DemonstrationError(f"{path}: unknown demonstration format '{suffix}' (use .csv, .npz or .mcap)")

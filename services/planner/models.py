@@ -159,7 +159,7 @@ def demo_path(name: str, demos_dir: Path = DEMOS_DIR) -> Path:
 def load_task_models(task: Any, cache: ModelCache | None = None, demos_dir: Path = DEMOS_DIR) -> TaskModels:
     """Models, orientation profiles and demonstration figures of every step of ``task``
     (a :class:`~services.planner.task.TaskSpec`). Errors name the file (see :func:`load_models`)."""
-    from services.learn_cli import check_motion, load_demonstration
+    from services.learn_cli import check_motion, check_recording, load_demonstration
     from services.planner.orientation import OrientationProfile
     from services.planner.sequencer import DemoFigures
     from services.robot.recordings import ee_poses
@@ -172,7 +172,9 @@ def load_task_models(task: Any, cache: ModelCache | None = None, demos_dir: Path
         path = demo_path(step.demo_name, demos_dir)
         quats = None
         if path.suffix.lower() == ".mcap":
-            load_demonstration(path)  # the checks psm learn makes (complete file, joints)
+            if not path.exists():
+                raise FileNotFoundError(f"{path}: no such file")
+            check_recording(path)
             t, X, quats = ee_poses(path)
         else:
             t, X, _dims = load_demonstration(path)

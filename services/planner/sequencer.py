@@ -272,8 +272,14 @@ class TaskRunner:
         missing = [s.name for s in task.steps if s.name not in models]
         if missing:
             raise ValueError(f"no model for step {missing[0]!r}")
+        if task.on_goal_lost == "neutral" and task.neutral_model not in models:
+            raise ValueError(f"on_goal_lost = neutral needs a model for step {task.neutral_model!r}")
         self.task = task
         self.goals = GoalBook(task, scene)
+        # The neutral detour runs the neutral model's step with that step's controller options.
+        self._neutral_opts = (
+            dict(task.step(task.neutral_model).controller) if task.neutral_model in task.sequence else {}
+        )
         self.models = dict(models)
         self.profiles = dict(profiles or {})
         self.demos = dict(demos or {})
@@ -320,6 +326,16 @@ class TaskRunner:
     def controller(self) -> PSMController | None:
         """The active step's PSM controller."""
         return self._ctrl
+
+    @property
+    def goal_velocity(self) -> NDArray[np.float64]:
+        """The estimated velocity of the goal in use [m/s] (zero for a static goal)."""
+        return self._goal_velocity
+
+    @property
+    def orientation_reference(self) -> NDArray[np.float64]:
+        """The last orientation reference sent, xyzw."""
+        return self._last_quat
 
     @property
     def goal(self) -> NDArray[np.float64] | None:
@@ -448,10 +464,7 @@ class TaskRunner:
             if spec.live:
                 # Following a live goal once reached: a critically damped tracker with the
                 # goal's velocity as feed-forward (no lag behind a goal moving steadily).
-                acc = self._kp * err + self._kd * (goal_vel - v)
-                n = math.sqrt(float(acc @ acc))
-                if n > self.task.hold_max_accel:
-                    acc = acc * (self.task.hold_max_accel / n)
+                acc = self._tracking(goal, goal_vel, x, v)
             rep.follow_sq += self.distance * self.distance
             rep.follow_n += 1
             rep.follow_max_m = max(rep.follow_max_m, self.distance)
@@ -492,7 +505,9 @@ class TaskRunner:
         if self._phase == "neutral":
             if self._neutral_ctrl is None:
                 model = self.models[self.task.neutral_model]
-                self._neutral_ctrl = model.controller(self.goals.static[self.task.neutral], start_shift=True)
+                self._neutral_ctrl = model.controller(
+                    self.goals.static[self.task.neutral], **self._neutral_opts
+                )
             acc = self._neutral_ctrl.step(x, v, dt)
             return PlannerOutput(np.asarray(acc, dtype=float), self._last_quat, np.zeros(3))
         return self._hold(x, v, quat)
@@ -588,6 +603,20 @@ class TaskRunner:
         ref = float(np.max(te)) if self._orient_dim < 0 else float(te[self._orient_dim])
         return self._orient.update(ref)
 
+    def _tracking(
+        self,
+        target: NDArray[np.float64],
+        target_velocity: NDArray[np.float64] | None,
+        x: NDArray[np.float64],
+        v: NDArray[np.float64],
+    ) -> NDArray[np.float64]:
+        """Critically damped tracking of ``target (3,)`` [m] moving at ``target_velocity (3,)``
+        [m/s] (None: still), natural frequency ``hold_omega``, limited to ``hold_max_accel``."""
+        dv = -v if target_velocity is None else target_velocity - v
+        a = self._kp * (target - x) + self._kd * dv
+        n = math.sqrt(float(a @ a))
+        return a * (self.task.hold_max_accel / n) if n > self.task.hold_max_accel else a
+
     def _hold(
         self, x: NDArray[np.float64], v: NDArray[np.float64], quat: NDArray[np.float64]
     ) -> PlannerOutput:
@@ -596,10 +625,7 @@ class TaskRunner:
         if self._hold_target is None:
             self._hold_target = np.asarray(x, dtype=float) + np.asarray(v, dtype=float) / self.task.hold_omega
             self._hold_quat = self._last_quat
-        a = self._kp * (self._hold_target - x) - self._kd * v
-        n = math.sqrt(float(a @ a))
-        if n > self.task.hold_max_accel:
-            a = a * (self.task.hold_max_accel / n)
+        a = self._tracking(self._hold_target, None, x, v)
         q = self._hold_quat if self._hold_quat is not None else np.asarray(quat, dtype=float)
         return PlannerOutput(a, q, np.zeros(3))
 

@@ -348,7 +348,7 @@ class PlannerService(ServiceApp):
                 rejected_goals=r.goals.rejected,
                 goal_name=spec.goal if spec else "",
                 step_elapsed_s=(self._last_stamp - r.reports[-1].start_ns) * 1e-9 if r.reports else 0.0,
-                goal_speed_mps=float(np.linalg.norm(r._goal_velocity)),
+                goal_speed_mps=float(np.linalg.norm(r.goal_velocity)),
             )
             if ctrl is not None:
                 msg.segment_index.extend(int(s) for s in ctrl.segment)
@@ -357,7 +357,7 @@ class PlannerService(ServiceApp):
             if r.goal is not None:
                 g = r.goal
                 msg.goal.x, msg.goal.y, msg.goal.z = float(g[0]), float(g[1]), float(g[2])
-            q = r._last_quat
+            q = r.orientation_reference
             o = msg.orientation_reference
             o.x, o.y, o.z, o.w = (float(c) for c in q)
             if lat is not None:

@@ -68,7 +68,6 @@ def simulate_task(
     robot = section.load_robot()
     sim = ArmSim(robot, section)
     runner = TaskRunner(config.task, config.scene.positions(), models.models, models.profiles, models.demos)
-    dt_ns = section.dt_ns
     goal_every = max(1, round(1.0 / (goal_rate_hz * dt_s))) if goals is not None else 0
     n_max = int(max_s / dt_s)
     rows: dict[str, list[Any]] = {k: [] for k in ("t", "x", "v", "a_cmd", "quat", "quat_ref", "goal", "step")}
@@ -106,6 +105,5 @@ def simulate_task(
             Command(snap.tick, CommandMode.CARTESIAN, out.acceleration, out.orientation, out.angular_velocity)
         )
         sim.step()
-    del dt_ns
     trace = {k: np.asarray(v) for k, v in rows.items()}
     return SimulationResult(runner.summary(), trace, events, runner)

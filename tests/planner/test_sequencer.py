@@ -252,3 +252,11 @@ def test_a_task_needs_a_model_per_step(feeding: FeedingConfig) -> None:
     m = PhaseSpaceModel.fit(t, np.column_stack([t, t, t]))
     with pytest.raises(ValueError, match="no model for step 'back_to_neutral'"):
         TaskRunner(feeding.task, feeding.scene.positions(), {"grasp_spoon": m})
+
+
+def test_on_goal_lost_neutral_needs_the_neutral_model(feeding: FeedingConfig, models: TaskModels) -> None:
+    from services.planner.sequencer import TaskRunner
+
+    task = feeding.task.model_copy(update={"on_goal_lost": "neutral", "neutral_model": "no_such_step"})
+    with pytest.raises(ValueError, match="needs a model for step 'no_such_step'"):
+        TaskRunner(task, feeding.scene.positions(), models.models)
