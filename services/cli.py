@@ -23,6 +23,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.arm.cli",
     "services.goal_tracker.cli",
     "services.planner.cli",
+    "services.obstacle_monitor.cli",
 )
 
 
@@ -115,4 +116,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     return dispatch(build_parser(), argv)
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Run the imported module's main, not this __main__ copy: sub-commands import
+    # services.cli (CLIError), and a second copy of the class would not be caught here.
+    sys.exit(importlib.import_module("services.cli").main())

@@ -88,6 +88,7 @@ COMMANDS: dict[tuple[str, ...], Command] = {
     ("camera", "synth"): Command("services.goal_tracker.config:TrackerConfig", "camera_synth"),
     ("track",): Command("services.goal_tracker.config:TrackerConfig", "goal_tracker"),
     ("plan",): Command("services.planner.config:PlannerConfig", "planner"),
+    ("obstacles",): Command("services.obstacle_monitor.config:ObstacleMonitorConfig", "obstacle_monitor"),
     ("record",): Command("services.bus.recorder:RecorderConfig", "recorder"),
     ("replay",): Command("services.bus.replayer:ReplayerConfig", "replayer"),
     ("echo",): Command("services.bus.echo:EchoConfig", "echo"),

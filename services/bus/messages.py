@@ -54,6 +54,7 @@ from services.bus.proto_gen.psm_pb2 import (
     Goal,
     GripperCommand,
     Obstacle,
+    ObstacleCommand,
     ObstacleSet,
     PlannerStatus,
     Quat,
@@ -79,6 +80,7 @@ __all__ = [
     "Keys",
     "MessageDecodeError",
     "Obstacle",
+    "ObstacleCommand",
     "ObstacleSet",
     "PlannerStatus",
     "PoseInFrame",
@@ -115,6 +117,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         Goal,
         FaceDetections,
         ObstacleSet,
+        ObstacleCommand,
         CollisionPrediction,
         PlannerStatus,
         TaskEvent,
@@ -347,6 +350,11 @@ class Keys:
         return Topic(self._k("obstacles"), ObstacleSet, QOS_LATCHED)
 
     @property
+    def obstacles_command(self) -> Topic:
+        """``<prefix>/obstacles/command`` — :class:`ObstacleCommand` (add, move, remove by id)."""
+        return Topic(self._k("obstacles", "command"), ObstacleCommand, QOS_DATA)
+
+    @property
     def scene(self) -> Topic:
         """``<prefix>/viz/scene`` — foxglove ``SceneUpdate`` (obstacles, goals as 3-D
         entities), latched."""
@@ -366,6 +374,13 @@ class Keys:
     def planner_status(self) -> Topic:
         """``<prefix>/planner/status`` — :class:`PlannerStatus` (e.g. 10-50 Hz)."""
         return Topic(self._k("planner", "status"), PlannerStatus, QOS_DATA)
+
+    @property
+    def planner_goal(self) -> Topic:
+        """``<prefix>/planner/goal`` — :class:`Goal`: the goal the active step is heading to
+        (offset included), on every change, latched (the obstacle monitor tests the segment to
+        it)."""
+        return Topic(self._k("planner", "goal"), Goal, QOS_LATCHED)
 
     @property
     def task_events(self) -> Topic:
@@ -408,7 +423,7 @@ class Keys:
     def latched_selectors(self) -> list[Topic]:
         """Selectors covering every latched stream (one QoS class each), for subscribers that
         want late-joiner history for everything (the recorder)."""
-        return [self.goals_all, self.viz_goals_all, self.obstacles, self.scene]
+        return [self.goals_all, self.viz_goals_all, self.obstacles, self.scene, self.planner_goal]
 
     @property
     def all(self) -> Topic:
@@ -445,10 +460,13 @@ class Keys:
         yield self.vision_faces
         yield self.camera_image(example_name)
         yield self.obstacles
+        yield self.obstacles_command
         yield self.scene
         yield self.collision
         yield self.planner_status
+        yield self.planner_goal
         yield self.task_events
+        yield self.gripper_command
         yield self.status(example_name)
 
 
@@ -462,10 +480,13 @@ _KEY_PATTERNS: list[tuple[re.Pattern[str], Any]] = [
     (re.compile("vision/faces"), lambda k: k.vision_faces),
     (re.compile("camera/" + _NAME + "/image"), lambda k, n: k.camera_image(n)),
     (re.compile("obstacles"), lambda k: k.obstacles),
+    (re.compile("obstacles/command"), lambda k: k.obstacles_command),
     (re.compile("viz/scene"), lambda k: k.scene),
     (re.compile("collision"), lambda k: k.collision),
     (re.compile("planner/status"), lambda k: k.planner_status),
+    (re.compile("planner/goal"), lambda k: k.planner_goal),
     (re.compile("task/events"), lambda k: k.task_events),
+    (re.compile("gripper/command"), lambda k: k.gripper_command),
     (re.compile("status/" + _NAME), lambda k, n: k.status(n)),
 ]
 

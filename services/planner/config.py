@@ -8,11 +8,13 @@ The task itself (scene and steps) is its own file, ``task_file`` (default the sh
     cache_dir = "out/models"        # learned models, by content hash
     status_rate_hz = 20.0
     exit_when_done = true           # psm up: the stack ends when the task does
+    collision_check = "required"    # act on the obstacle monitor; no fresh prediction = brake
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 
@@ -47,6 +49,20 @@ class PlannerSection(Section):
     source: str = Field("planner", min_length=1, description="the commands' source field")
     rt_priority: int = Field(
         0, ge=0, le=99, description="SCHED_FIFO priority of the planner process, 1-99 (0 = normal scheduling)"
+    )
+    collision_check: Literal["off", "required"] = Field(
+        "off",
+        description="'required': act on the obstacle monitor's predictions and brake to rest without a "
+        "fresh one; 'off': no obstacle handling",
+    )
+    prediction_max_age_s: float = Field(
+        0.02,
+        gt=0.0,
+        le=5.0,
+        description="a collision prediction older than this (stack clock) counts as none [s]",
+    )
+    monitor_service: str = Field(
+        "obstacle_monitor", min_length=1, description="the obstacle monitor's service name (liveliness)"
     )
 
     def task_path(self) -> Path:

@@ -22,6 +22,15 @@ Per step (``services.planner.task.StepSpec``):
   stopping point and resumes the same PSM from wherever it stopped once the goal is back;
   ``"neutral"`` drives the neutral model to the neutral position meanwhile and starts the step
   afresh from there once the goal is back;
+* **obstacles** (when a :class:`CollisionPolicy` is given): the latest collision prediction
+  (:meth:`TaskRunner.set_collision`, from the obstacle monitor) is applied at every step. A
+  predicted collision of the segment from the end effector to the goal sets the stop coordinates
+  of the affected axes (eq. 15: they brake to rest at the obstacle's face while the other axes go
+  on) and clears them once the segment is free, so the braked axes resume their PSTF from where
+  they are; a protective stop (whole-arm clearance too small), a prediction older than
+  ``max_age_s`` on the stack's clock, no prediction at all, or the monitor gone brakes every axis
+  to rest (the path is treated as blocked: the arm never moves blind). At rest in front of an
+  obstacle the step reports HOLDING with the obstacle's id;
 * **done** once within ``position_tolerance_m`` of the goal and ``velocity_tolerance_mps`` of the
   goal's own velocity, then ``dwell_s`` (and ``follow_s`` for a live goal) with the PSM holding
   the goal, then the gripper action, then the next step. A step that takes longer than its
@@ -43,10 +52,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from psm import PhaseSpaceModel, PSMController
+from psm.controller import MODE_STOP, MODE_TERMINAL
 from services.planner.orientation import OrientationProfile, OrientationTracker
 from services.planner.task import StepSpec, TaskSpec
 
 __all__ = [
+    "CollisionInfo",
+    "CollisionPolicy",
     "DemoFigures",
     "GoalBook",
     "PlannerOutput",
@@ -79,6 +91,32 @@ class DemoFigures:
         dist = np.abs(X - goal)
         away = np.maximum(0.0, dist.max(axis=0) - dist[0])
         return cls(speed, (float(away[0]), float(away[1]), float(away[2])))
+
+
+@dataclass(frozen=True)
+class CollisionPolicy:
+    """How the planner uses the obstacle monitor's predictions: a prediction older than
+    ``max_age_s`` [s] of the stack's clock counts as none (the path is treated as blocked)."""
+
+    max_age_s: float
+
+
+@dataclass
+class CollisionInfo:
+    """One collision prediction as the planner uses it (from ``CollisionPrediction``).
+
+    ``stamp_ns`` is the stamp of the arm state it was computed for; ``stop_position (3,)`` [m] the
+    stop coordinate per axis (NaN: the axis goes on); ``protective_stop``: stop every axis."""
+
+    stamp_ns: int
+    tick: int
+    collision: bool = False
+    obstacle_id: str = ""
+    stop_position: NDArray[np.float64] = field(default_factory=lambda: np.full(3, np.nan))
+    protective_stop: bool = False
+    min_clearance_m: float = math.inf
+    closest_link: str = ""
+    detail: str = ""
 
 
 @dataclass
@@ -259,6 +297,7 @@ class TaskRunner:
         profiles: the orientation profile per step name (a step without one, or with
             ``orientation = "hold"``, keeps its start orientation).
         demos: the demonstration figures per step name (for the step reports).
+        collision: use the obstacle monitor's predictions (None: no obstacle handling).
     """
 
     def __init__(
@@ -268,6 +307,7 @@ class TaskRunner:
         models: Mapping[str, PhaseSpaceModel],
         profiles: Mapping[str, OrientationProfile] | None = None,
         demos: Mapping[str, DemoFigures] | None = None,
+        collision: CollisionPolicy | None = None,
     ) -> None:
         missing = [s.name for s in task.steps if s.name not in models]
         if missing:
@@ -307,6 +347,14 @@ class TaskRunner:
         self._restart = False
         self.distance = math.nan
         self.speed = 0.0
+        self.collision_policy = collision
+        self._collision: CollisionInfo | None = None
+        self._monitor_alive = True
+        self._guard = ""  # why every axis is braked for the obstacles ("" = not)
+        self._guard_target: NDArray[np.float64] | None = None
+        self._blocked_by = ""  # obstacle at whose face the arm rests ("" = none)
+        self._stops_set = False
+        self.collision_stops = 0  # predicted collisions acted on (transitions into a stop)
         w = task.hold_omega
         self._kp, self._kd = w * w, 2.0 * w
 
@@ -316,6 +364,24 @@ class TaskRunner:
     ) -> str:
         """A live goal update (see :meth:`GoalBook.update`); ``""`` if accepted."""
         return self.goals.update(name, position, stamp_ns, valid, reason)
+
+    def set_collision(self, info: CollisionInfo) -> None:
+        """The obstacle monitor's latest prediction (applied from the next :meth:`step`)."""
+        self._collision = info
+
+    def set_monitor_alive(self, alive: bool) -> None:
+        """The obstacle monitor's liveliness (gone: the path is treated as blocked)."""
+        self._monitor_alive = alive
+
+    @property
+    def monitor_alive(self) -> bool:
+        """The obstacle monitor's liveliness as last reported."""
+        return self._monitor_alive
+
+    @property
+    def collision(self) -> CollisionInfo | None:
+        """The latest collision prediction, or None."""
+        return self._collision
 
     @property
     def step_spec(self) -> StepSpec | None:
@@ -378,6 +444,7 @@ class TaskRunner:
         ``measured_accel (3,)`` [m/s²] (for the step report)."""
         self._tick, self._now_ns = tick, now_ns
         if self.state == IDLE:
+            self._last_quat = np.asarray(quat, dtype=float).copy()  # held until a step sets one
             self._event("STARTED", f"task {self.task.name}: {len(self.task.steps)} steps")
             self._start_step(0, now_ns, x, quat)
         elif self._restart:
@@ -394,8 +461,12 @@ class TaskRunner:
         goal, goal_vel, why = self.goals.resolve(spec, now_ns)
         if goal is None:
             out = self._unavailable(why, now_ns, x, v, quat, dt)
+        elif self.collision_policy is not None and self._obstacle_guard(now_ns, rep, dt):
+            out = self._guard_stop(x, v, quat)
         else:
             out = self._available(spec, rep, goal, goal_vel, now_ns, x, v, quat, dt)
+            if self.collision_policy is not None and self._phase == "run":
+                self._check_blocked(rep, dt)
         if rep.outcome == "running":
             rep.peak_speed_mps = max(rep.peak_speed_mps, speed)
             if measured_accel is not None:
@@ -512,6 +583,88 @@ class TaskRunner:
             return PlannerOutput(np.asarray(acc, dtype=float), self._last_quat, np.zeros(3))
         return self._hold(x, v, quat)
 
+    # ------------------------------------------------------------------ obstacles
+    def _obstacle_guard(self, now_ns: int, rep: StepReport, dt: float) -> bool:
+        """Apply the latest prediction to the active controller; True when every axis must brake
+        (protective stop, or no usable prediction)."""
+        assert self.collision_policy is not None
+        info = self._collision
+        reason = ""
+        if not self._monitor_alive:
+            reason = "obstacle monitor not alive"
+        elif info is None:
+            reason = "no collision prediction yet"
+        elif (now_ns - info.stamp_ns) * 1e-9 > self.collision_policy.max_age_s:
+            reason = f"collision prediction stale ({(now_ns - info.stamp_ns) * 1e-6:.0f} ms old)"
+        elif info.protective_stop:
+            reason = "protective stop: " + (
+                info.detail
+                or f"clearance {info.min_clearance_m:.3f} m ({info.closest_link}, {info.obstacle_id})"
+            )
+        if reason:
+            if not self._guard:
+                self._guard_target = None
+                self._event("PAUSED", f"{reason}: braking every axis")
+            self._guard = reason
+            self._blocked_by = ""
+            self.state, self.detail = HOLDING, reason
+            rep.hold_s += dt
+            return True
+        if self._guard:
+            self._guard = ""
+            self._guard_target = None
+            self.state, self.detail = RUNNING, ""
+            self._event("RESUMED", "collision prediction available")
+        ctrl = self._ctrl
+        assert info is not None and ctrl is not None
+        if info.collision and info.stop_position.shape == (3,) and np.isfinite(info.stop_position).any():
+            if not self._stops_set:
+                self.collision_stops += 1
+                self._event(
+                    "COLLISION_PREDICTED",
+                    f"collision predicted with {info.obstacle_id}: stop at "
+                    + " ".join(
+                        f"{'xyz'[d]}={info.stop_position[d]:.3f}"
+                        for d in range(3)
+                        if math.isfinite(info.stop_position[d])
+                    ),
+                )
+            ctrl.set_stops(info.stop_position)
+            self._stops_set = True
+        elif self._stops_set:
+            ctrl.clear_stops()
+            self._stops_set = False
+            self._event("PATH_CLEAR", "path clear of obstacles: braked axes resume")
+        return False
+
+    def _check_blocked(self, rep: StepReport, dt: float) -> None:
+        """HOLDING with the obstacle's id while the arm rests at a collision stop it cannot pass."""
+        ctrl, info = self._ctrl, self._collision
+        assert ctrl is not None
+        stopped = self._stops_set and info is not None and MODE_STOP in ctrl.modes
+        at_rest = stopped and self.speed <= self.step_spec.velocity_tolerance_mps  # type: ignore[union-attr]
+        if at_rest and all(m in (MODE_STOP, MODE_TERMINAL) for m in ctrl.modes):
+            assert info is not None
+            if self._blocked_by != info.obstacle_id:
+                self._blocked_by = info.obstacle_id
+                self._event("PAUSED", f"obstacle {info.obstacle_id} blocks the path to the goal")
+            self.state, self.detail = HOLDING, f"obstacle {info.obstacle_id} blocks the path to the goal"
+            rep.hold_s += dt
+        elif self._blocked_by:
+            self._blocked_by = ""
+            self.state, self.detail = RUNNING, ""
+            self._event("RESUMED", "path clear of obstacles")
+
+    def _guard_stop(
+        self, x: NDArray[np.float64], v: NDArray[np.float64], quat: NDArray[np.float64]
+    ) -> PlannerOutput:
+        """Brake every axis to rest (the hold law towards the stopping point ``x + v/ω``)."""
+        if self._guard_target is None:
+            x_arr, v_arr = np.asarray(x, dtype=float), np.asarray(v, dtype=float)
+            self._guard_target = x_arr + v_arr / self.task.hold_omega
+        a = self._tracking(self._guard_target, None, x, v)
+        return PlannerOutput(a, self._last_quat, np.zeros(3))
+
     # ------------------------------------------------------------------ transitions
     def _start_step(self, index: int, now_ns: int, x: NDArray[np.float64], quat: NDArray[np.float64]) -> None:
         self.index = index
@@ -519,6 +672,7 @@ class TaskRunner:
         model = self.models[spec.name]
         goal, _vel, _why = self.goals.resolve(spec, now_ns)
         self._ctrl = model.controller(goal if goal is not None else model.goal, **spec.controller)
+        self._stops_set, self._blocked_by = False, ""
         self._goal = goal
         self._event_goal = None if goal is None else goal.copy()
         self._segments = ()
@@ -552,6 +706,7 @@ class TaskRunner:
             model = self.models[spec.name]
             goal, _v, _w = self.goals.resolve(spec, now_ns)
             self._ctrl = model.controller(goal, **spec.controller)
+            self._stops_set, self._blocked_by = False, ""
             self._orient = OrientationTracker(
                 self._orient.profile if self._orient else OrientationProfile.constant(quat), quat
             )

@@ -15,7 +15,18 @@ Published besides the commands:
 * ``<prefix>/task/events`` — :class:`TaskEvent` for every transition (step started, segment
   changed, goal changed or lost, paused, resumed, gripper, step completed, task completed or
   aborted; the completions carry their figures as JSON);
-* ``<prefix>/gripper/command`` — :class:`GripperCommand` where the task asks for one.
+* ``<prefix>/gripper/command`` — :class:`GripperCommand` where the task asks for one;
+* ``<prefix>/planner/goal`` — :class:`Goal`: the goal the active step heads to (offset
+  included), on every change, latched: the obstacle monitor tests the segment to it.
+
+Obstacles (``collision_check = "required"``): the monitor's :class:`CollisionPrediction` on
+``<prefix>/collision`` is applied to the running step (eq. 15 stops, protective stop; see
+:class:`~services.planner.sequencer.TaskRunner`); without a prediction younger than
+``prediction_max_age_s`` on the stack's clock, or with the monitor's liveliness gone, every axis
+brakes to rest. In lockstep a state is answered once the prediction for its tick has arrived
+(the run is then as deterministic as without the monitor); a state superseded by the next one,
+or held when the monitor disappears, is answered with what is known. In realtime the latest
+prediction is used at once (no wait on the control path).
 
 Threads: the state is handled on Zenoh's receive thread (decode into a reused message, checks,
 the controller step, encode into a reused command, ``put``: no queue hop, no allocation beyond
@@ -47,6 +58,7 @@ import numpy as np
 from services.bus.messages import (
     ArmCommand,
     ArmState,
+    CollisionPrediction,
     Goal,
     GripperCommand,
     PlannerStatus,
@@ -56,7 +68,7 @@ from services.bus.messages import (
 from services.bus.runtime import Service, ServiceApp, run_service
 from services.planner.config import PlannerConfig
 from services.planner.models import DEMOS_DIR, ModelCache, load_task_models
-from services.planner.sequencer import TaskRunner
+from services.planner.sequencer import CollisionInfo, CollisionPolicy, TaskRunner
 from services.threads import limit_blas_threads
 
 SERVICE_NAME = "planner"
@@ -92,13 +104,26 @@ class PlannerService(ServiceApp):
         demos = Path(sec.demos_dir) if sec.demos_dir else DEMOS_DIR
         self.models = load_task_models(self.task_config.task, cache, demos)
         scene = self.task_config.scene
+        self._check_collisions = sec.collision_check == "required"
         self.runner = TaskRunner(
             self.task_config.task,
             scene.positions(),
             self.models.models,
             self.models.profiles,
             self.models.demos,
+            collision=CollisionPolicy(sec.prediction_max_age_s) if self._check_collisions else None,
         )
+        # Lockstep: answer a state once the prediction for its tick is in (deterministic runs).
+        self._wait_prediction = self._check_collisions and config.clock == "lockstep"
+        self._parked: tuple[bytes, int, int] | None = None  # (state payload, receive ns, tick)
+        self._pred = CollisionPrediction()
+        self._pred_encoding = encoding_for(CollisionPrediction)
+        self._pred_tick = -1
+        self.waited_states = 0
+        self.rejected_predictions = 0
+        self._goal_msg = Goal(frame_id=scene.frame_id)
+        self._sent_goal: tuple[float, float, float] | None = None
+        self._sent_goal_step = -1
         self.frame_id = scene.frame_id
         # After the models are learned (never fit at real-time priority) and before the bus
         # opens, so Zenoh's threads (the state is answered on one) inherit it.
@@ -151,6 +176,16 @@ class PlannerService(ServiceApp):
         svc.on_close(sub.undeclare)
         self._goals_prefix = keys.goals_all.key[:-1]
         svc.subscribe(keys.goals_all, self._on_goal)
+        self._goal_pub = svc.publisher(keys.planner_goal)
+        if self._check_collisions:
+            self._pred_key = keys.collision.key
+            pred_sub = svc.session.declare_subscriber(
+                self._pred_key, zenoh.handlers.Callback(self._on_prediction, indirect=False)
+            )
+            svc.on_close(pred_sub.undeclare)
+            # Not alive until its token is seen (no prediction yet means blocked either way).
+            self.runner.set_monitor_alive(False)
+            svc.watch_liveliness([self.config.planner.monitor_service], self._on_monitor)
         task = self.task_config.task
         svc.log.info(
             "planner ready",
@@ -172,22 +207,107 @@ class PlannerService(ServiceApp):
                 self._reject_state(f"encoding {sample.encoding} is not psm.ArmState")
             return
         with self._lock:
-            st = self._state
+            if self._wait_prediction:
+                superseded = self._parked is not None
+                self._parked = None
+                if not superseded and self.runner.monitor_alive:
+                    tick = _peek_tick(payload)
+                    if tick is not None and tick > self._pred_tick and tick != self._last_tick:
+                        self._parked = (payload, t_recv, tick)  # answered by _on_prediction
+                        return
+            self._handle_state(payload, t_recv)
+
+    def _handle_state(self, payload: bytes, t_recv: int) -> None:
+        """Parse, check and answer one state (under the lock)."""
+        st = self._state
+        try:
+            st.ParseFromString(payload)
+        except Exception as exc:
+            self._reject_state(f"malformed ArmState ({len(payload)} bytes): {exc}")
+            return
+        self.svc.counters.add("received")
+        reply = self._answer(st)
+        if reply is None:
+            return
+        # A changed goal goes out before the command: the monitor then has it before the arm
+        # state that the command leads to (same session and router, so the order holds).
+        self._publish_goal()
+        self._cmd_pub.put_bytes(reply)
+        lat = time.perf_counter_ns() - t_recv
+        self._lat[self._n_lat % _LAT_RING] = lat
+        self._n_lat += 1
+        if len(self._lat_all) < 2_000_000:
+            self._lat_all.append(lat * 1e-3)
+
+    def _publish_goal(self) -> None:
+        """Publish the goal in use when it changed (the monitor's segment end)."""
+        g = self.runner.goal
+        if g is None:
+            return
+        key = (float(g[0]), float(g[1]), float(g[2]))
+        if key == self._sent_goal and self._sent_goal_step == self.runner.index:
+            return
+        self._sent_goal, self._sent_goal_step = key, self.runner.index
+        spec = self.runner.step_spec
+        m = self._goal_msg
+        m.stamp_ns = self._last_stamp
+        m.seq += 1
+        m.name = spec.goal if spec else ""
+        m.position.x, m.position.y, m.position.z = key
+        m.valid = True
+        self._goal_pub.put(m)
+
+    def _on_prediction(self, sample: Any) -> None:
+        """Zenoh's receive thread: the monitor's prediction; answers a state waiting for it."""
+        payload = sample.payload.to_bytes()
+        with self._lock:
+            if str(sample.encoding) != self._pred_encoding:
+                self.rejected_predictions += 1
+                self.svc.record_rejection(self._pred_key, f"encoding {sample.encoding}")
+                return
+            pr = self._pred
             try:
-                st.ParseFromString(payload)
+                pr.ParseFromString(payload)
             except Exception as exc:
-                self._reject_state(f"malformed ArmState ({len(payload)} bytes): {exc}")
+                self.rejected_predictions += 1
+                self.svc.record_rejection(self._pred_key, f"malformed CollisionPrediction: {exc}")
                 return
-            self.svc.counters.add("received")
-            reply = self._answer(st)
-            if reply is None:
+            stop = np.array(pr.stop_position, dtype=float) if pr.stop_position else np.full(3, np.nan)
+            if stop.shape != (3,) or np.isinf(stop).any():
+                self.rejected_predictions += 1
+                self.svc.record_rejection(self._pred_key, "stop_position is not 3 numbers (NaN = none)")
                 return
-            self._cmd_pub.put_bytes(reply)
-            lat = time.perf_counter_ns() - t_recv
-            self._lat[self._n_lat % _LAT_RING] = lat
-            self._n_lat += 1
-            if len(self._lat_all) < 2_000_000:
-                self._lat_all.append(lat * 1e-3)
+            tick = int(pr.state_tick)
+            if tick < self._pred_tick:
+                return  # an older prediction arriving late
+            self._pred_tick = tick
+            self.runner.set_collision(
+                CollisionInfo(
+                    stamp_ns=int(pr.stamp_ns),
+                    tick=tick,
+                    collision=bool(pr.collision),
+                    obstacle_id=pr.obstacle_id,
+                    stop_position=stop,
+                    protective_stop=bool(pr.protective_stop),
+                    min_clearance_m=float(pr.min_clearance_m),
+                    closest_link=pr.closest_link,
+                    detail=pr.detail,
+                )
+            )
+            parked = self._parked
+            if parked is not None and parked[2] <= tick:
+                self._parked = None
+                self.waited_states += 1
+                self._handle_state(parked[0], parked[1])
+
+    def _on_monitor(self, name: str, alive: bool) -> None:
+        with self._lock:
+            self.runner.set_monitor_alive(alive)
+            if not alive:
+                self.svc.log.warning("obstacle monitor gone: braking every axis", extra={"service": name})
+                parked, self._parked = self._parked, None
+                if parked is not None:
+                    self._handle_state(parked[0], parked[1])
 
     def _answer(self, st: ArmState) -> bytes | None:
         """The command bytes answering ``st``, or None when it is rejected (under the lock)."""
@@ -350,6 +470,18 @@ class PlannerService(ServiceApp):
                 step_elapsed_s=(self._last_stamp - r.reports[-1].start_ns) * 1e-9 if r.reports else 0.0,
                 goal_speed_mps=float(np.linalg.norm(r.goal_velocity)),
             )
+            if self._check_collisions:
+                info = r.collision
+                msg.collision_check = True
+                msg.monitor_alive = r.monitor_alive
+                msg.collision_stops = r.collision_stops
+                msg.waited_states = self.waited_states
+                if info is not None:
+                    msg.collision = info.collision
+                    msg.obstacle_id = info.obstacle_id
+                    msg.stop_position.extend(float(c) for c in info.stop_position)
+                    msg.min_clearance_m = info.min_clearance_m
+                    msg.prediction_age_s = (self._last_stamp - info.stamp_ns) * 1e-9
             if ctrl is not None:
                 msg.segment_index.extend(int(s) for s in ctrl.segment)
                 msg.time_to_go_s.extend(float(t) for t in ctrl.time_to_go)
@@ -378,6 +510,12 @@ class PlannerService(ServiceApp):
                 "duplicate_states": self.duplicate_states,
                 "rejected_goals": self.runner.goals.rejected,
             }
+            if self._check_collisions:
+                out["planner"].update(
+                    collision_stops=self.runner.collision_stops,
+                    waited_states=self.waited_states,
+                    rejected_predictions=self.rejected_predictions,
+                )
         if lat is not None:
             p50, p99, p999 = np.percentile(lat, [50, 99, 99.9])
             out["planner"]["latency_us"] = {
@@ -408,6 +546,31 @@ class PlannerService(ServiceApp):
             tmp.write_text(json.dumps(s, indent=2, default=float))
             with contextlib.suppress(OSError):
                 tmp.replace(path)
+
+
+def _peek_tick(payload: bytes) -> int | None:
+    """The ``tick`` of an encoded ArmState without parsing the rest (None: not decodable here)."""
+    # Fields are serialised in number order: stamp_ns (1, varint, tag 0x08), tick (2, varint,
+    # tag 0x10), then the rest. A field left at its default (0) is absent.
+    i, n = 0, len(payload)
+    while i < n:
+        tag = payload[i]
+        i += 1
+        if tag & 0x80 or tag >> 3 > 2:
+            return 0  # past field 2: the tick is 0
+        if tag not in (0x08, 0x10):
+            return None
+        value, shift = 0, 0
+        while i < n:
+            b = payload[i]
+            i += 1
+            value |= (b & 0x7F) << shift
+            shift += 7
+            if not b & 0x80:
+                break
+        if tag == 0x10:
+            return value
+    return 0
 
 
 def main(config: PlannerConfig) -> int:

@@ -11,7 +11,7 @@ the tests) run in seconds; the end-to-end tests and ``psm up`` run the same thin
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,18 +19,66 @@ import numpy as np
 from numpy.typing import NDArray
 
 from services.planner.models import TaskModels
-from services.planner.sequencer import TaskRunner
+from services.planner.sequencer import CollisionInfo, CollisionPolicy, TaskRunner
 
-__all__ = ["LiveGoalFn", "SimulationResult", "simulate_task"]
+__all__ = [
+    "CollisionFn",
+    "LiveGoalFn",
+    "SimulationResult",
+    "monitor_predictor",
+    "segment_predictor",
+    "simulate_task",
+]
 
 #: Live goals at sim time ``t`` [s]: ``{name: (position (3,) [m], valid)}``.
 LiveGoalFn = Callable[[float], Mapping[str, tuple[Any, bool]]]
+
+#: The obstacle monitor in process: ``(stamp_ns, tick, x (3,), v (3,), goal (3,) or None, q (n,),
+#: dq (n,), dt_s)`` → the prediction for that state (None: no prediction this tick).
+CollisionFn = Callable[..., CollisionInfo | None]
+
+
+def monitor_predictor(obstacles: Sequence[Any], robot: Any | None = None, **section: Any) -> CollisionFn:
+    """The obstacle monitor's logic (:class:`~services.obstacle_monitor.monitor.ObstacleMonitor`:
+    segment test, and the whole-arm clearance when ``robot`` is given) as a :data:`CollisionFn`.
+    ``obstacles`` are added at the first state; ``section`` sets ``[obstacle_monitor]`` fields
+    (``margin_m``, ``clearance_every``, ...; the start list must stay empty)."""
+    from services.obstacle_monitor.config import ObstacleMonitorSection
+    from services.obstacle_monitor.monitor import ObstacleMonitor
+
+    mon = ObstacleMonitor(ObstacleMonitorSection(**section), robot)
+    for ob in obstacles:
+        problem = mon.add(ob)
+        if problem:
+            raise ValueError(f"obstacle {ob.id}: {problem}")
+
+    def predict(
+        stamp_ns: int, tick: int, x: Any, v: Any, goal: Any, q: Any, dq: Any, dt_s: float
+    ) -> CollisionInfo:
+        mon.set_goal(goal)
+        p = mon.check(stamp_ns, tick, np.asarray(x), np.asarray(v), np.asarray(q), np.asarray(dq), dt_s)
+        return CollisionInfo(
+            stamp_ns, tick, p.collision, p.obstacle_id, p.stop_position, p.protective_stop,
+            p.min_clearance_m, p.closest_link, p.detail,
+        )
+
+    predict.monitor = mon  # type: ignore[attr-defined]
+    return predict
+
+
+def segment_predictor(obstacles: Sequence[Any], inflation_m: float, horizon_s: float = 0.0) -> CollisionFn:
+    """The monitor's segment test alone (no whole-arm clearance), obstacles inflated by
+    ``inflation_m`` [m], as a :data:`CollisionFn`."""
+    return monitor_predictor(
+        obstacles, None, margin_m=inflation_m, tool_radius_m=0.0, horizon_s=horizon_s, clearance=False
+    )
 
 
 @dataclass
 class SimulationResult:
     """``summary``: :meth:`TaskRunner.summary`; ``trace``: per tick ``t (N,)`` [s], ``x, v (N, 3)``,
-    ``a_cmd (N, 3)``, ``quat, quat_ref (N, 4)``, ``goal (N, 3)`` (NaN while none), ``step (N,)``;
+    ``a_cmd (N, 3)``, ``quat, quat_ref (N, 4)``, ``goal (N, 3)`` (NaN while none), ``step (N,)``,
+    ``state (N,)`` (the runner's state name), ``q (N, n)`` joints [rad];
     ``events``: every transition."""
 
     summary: dict[str, Any]
@@ -49,6 +97,8 @@ def simulate_task(
     dt_s: float = 0.002,
     max_s: float = 120.0,
     arm: Mapping[str, Any] | None = None,
+    collision: CollisionFn | None = None,
+    prediction_max_age_s: float = 0.02,
 ) -> SimulationResult:
     """Run ``config`` (a :class:`~services.tasks.feeding.FeedingConfig`: scene + task) to its end
     (done or aborted) or ``max_s`` of sim time.
@@ -59,6 +109,9 @@ def simulate_task(
         start_pose: the arm's start pose (named or joints).
         dt_s: control period [s].
         arm: further :class:`~services.arm.sim.ArmSimConfig` fields.
+        collision: the obstacle monitor in process (e.g. :func:`segment_predictor`): called on
+            every state, its prediction is applied at once (as in a lockstep run over the bus).
+        prediction_max_age_s: the planner's ``prediction_max_age_s`` (with ``collision``).
     """
     from services.arm.config import ArmSection
     from services.arm.sim import ArmSim
@@ -67,10 +120,14 @@ def simulate_task(
     section = ArmSection(dt_s=dt_s, start_pose=start_pose, **dict(arm or {}))
     robot = section.load_robot()
     sim = ArmSim(robot, section)
-    runner = TaskRunner(config.task, config.scene.positions(), models.models, models.profiles, models.demos)
+    policy = CollisionPolicy(prediction_max_age_s) if collision is not None else None
+    runner = TaskRunner(
+        config.task, config.scene.positions(), models.models, models.profiles, models.demos, collision=policy
+    )
     goal_every = max(1, round(1.0 / (goal_rate_hz * dt_s))) if goals is not None else 0
     n_max = int(max_s / dt_s)
-    rows: dict[str, list[Any]] = {k: [] for k in ("t", "x", "v", "a_cmd", "quat", "quat_ref", "goal", "step")}
+    names = ("t", "x", "v", "a_cmd", "quat", "quat_ref", "goal", "step", "state", "q")
+    rows: dict[str, list[Any]] = {k: [] for k in names}
     events: list[Any] = []
     for k in range(n_max):
         snap = sim.snapshot()
@@ -80,6 +137,12 @@ def simulate_task(
             for name, (pos, valid) in goals(t_ns * 1e-9).items():
                 runner.update_goal(name, pos, t_ns, valid)
         ee = snap.ee
+        if collision is not None:
+            info = collision(
+                t_ns, snap.tick, ee.position, ee.linear_velocity, runner.goal, snap.q, snap.dq, dt_s
+            )
+            if info is not None:
+                runner.set_collision(info)
         out = runner.step(
             t_ns,
             ee.position,
@@ -99,6 +162,8 @@ def simulate_task(
         rows["quat_ref"].append(out.orientation)
         rows["goal"].append(g if g is not None else np.full(3, np.nan))
         rows["step"].append(runner.index)
+        rows["state"].append(runner.state)
+        rows["q"].append(snap.q)
         if runner.state in ("DONE", "FAULT"):
             break
         sim.submit(

@@ -163,3 +163,135 @@ def test_a_recorded_run_replayed_into_a_planner_gives_the_same_commands() -> Non
             assert reply == recorded[st.tick], f"tick {st.tick}"
             same.add(st.tick)
     assert same == set(recorded) and not fake.rejections
+
+
+# ---------------------------------------------------------------------------- collision predictions
+class _Sample:
+    def __init__(self, msg: Any, encoding: str | None = None) -> None:
+        from services.bus.messages import encoding_for
+
+        self._bytes = msg.SerializeToString()
+        self.encoding = encoding or encoding_for(type(msg))
+        self.payload = self
+
+    def to_bytes(self) -> bytes:
+        return self._bytes
+
+
+class _Pub:
+    def __init__(self) -> None:
+        self.sent: list[Any] = []
+
+    def put_bytes(self, payload: bytes) -> None:
+        self.sent.append(payload)
+
+    def put(self, msg: Any) -> None:
+        self.sent.append(msg)
+
+
+def _watched_planner(clock: str) -> tuple[PlannerService, _FakeService, _Pub, _Pub]:
+    cfg = load_config(
+        PlannerConfig,
+        env={},
+        overrides={
+            "clock": clock,
+            "planner.cache_dir": str(ROOT / "out" / "models"),
+            "planner.collision_check": "required",
+        },
+    )
+    p = PlannerService(cfg)
+    fake = _FakeService()
+    p.svc = fake  # type: ignore[assignment]
+    p._state_key, p._pred_key = "psm/arm/state", "psm/collision"
+    cmd, goal = _Pub(), _Pub()
+    p._cmd_pub, p._goal_pub = cmd, goal  # type: ignore[assignment]
+    return p, fake, cmd, goal
+
+
+def _prediction(tick: int, **fields: Any) -> Any:
+    from services.bus.messages import CollisionPrediction
+
+    m = CollisionPrediction(state_tick=tick, stamp_ns=tick * 2_000_000, **fields)
+    if not m.stop_position:
+        m.stop_position.extend([float("nan")] * 3)
+    return m
+
+
+def test_lockstep_answers_a_state_once_its_prediction_is_in() -> None:
+    p, _fake, cmd, goal = _watched_planner("lockstep")
+    p._on_monitor("obstacle_monitor", True)
+    p._on_state(_Sample(_state(0)))
+    assert cmd.sent == []  # parked: no prediction for tick 0 yet
+    p._on_prediction(_Sample(_prediction(0)))
+    assert [ArmCommand.FromString(b).tick for b in cmd.sent] == [0] and p.waited_states == 1
+    # The planner's goal went out with the first answer (the monitor's segment end).
+    assert goal.sent and goal.sent[0].name == "spoon"
+    # A prediction that arrives first: the state is answered at once.
+    p._on_prediction(_Sample(_prediction(1)))
+    p._on_state(_Sample(_state(1)))
+    assert [ArmCommand.FromString(b).tick for b in cmd.sent] == [0, 1]
+    assert p.runner.state == "RUNNING"
+
+
+def test_the_monitor_gone_answers_the_parked_state_with_a_brake() -> None:
+    p, _fake, cmd, _goal = _watched_planner("lockstep")
+    p._on_monitor("obstacle_monitor", True)
+    p._on_state(_Sample(_state(0)))
+    p._on_prediction(_Sample(_prediction(0)))
+    p._on_state(_Sample(_state(1)))
+    assert len(cmd.sent) == 1
+    p._on_monitor("obstacle_monitor", False)
+    assert len(cmd.sent) == 2 and p.runner.state == "HOLDING" and "not alive" in p.runner.detail
+    p._on_state(_Sample(_state(2)))  # no monitor: answered at once, still braking
+    assert len(cmd.sent) == 3
+
+
+def test_realtime_never_waits_for_a_prediction() -> None:
+    p, _fake, cmd, _goal = _watched_planner("realtime")
+    p._on_monitor("obstacle_monitor", True)
+    p._on_state(_Sample(_state(0)))
+    assert len(cmd.sent) == 1 and p.runner.state == "HOLDING"  # no prediction yet: brake
+    p._on_prediction(_Sample(_prediction(0)))
+    p._on_state(_Sample(_state(1)))
+    assert len(cmd.sent) == 2 and p.runner.state == "RUNNING"
+
+
+@pytest.mark.parametrize(
+    ("sample", "reason"),
+    [
+        (lambda: _Sample(_prediction(0), encoding="application/protobuf;psm.Goal"), "encoding"),
+        (lambda: _Sample(Goal(name="x")), "encoding"),
+        (lambda: _bad_stop(), "stop_position"),
+    ],
+)
+def test_bad_predictions_are_rejected_and_never_used(sample: Any, reason: str) -> None:
+    p, fake, _cmd, _goal = _watched_planner("realtime")
+    p._on_monitor("obstacle_monitor", True)
+    p._on_prediction(sample())
+    assert p.rejected_predictions == 1 and reason in fake.rejections[-1]
+    assert p.runner.collision is None
+
+
+def _bad_stop() -> Any:
+    m = _prediction(0)
+    del m.stop_position[:]
+    m.stop_position.extend([0.1, float("inf"), 0.0])
+    return _Sample(m)
+
+
+def test_a_predicted_collision_sets_the_stops_and_a_clear_path_removes_them() -> None:
+    p, _fake, _cmd, _goal = _watched_planner("realtime")
+    p._on_monitor("obstacle_monitor", True)
+    p._on_prediction(_Sample(_prediction(0)))
+    p._on_state(_Sample(_state(0)))
+    hit = _prediction(1, collision=True, obstacle_id="wall")
+    del hit.stop_position[:]
+    hit.stop_position.extend([float("nan"), 0.31, float("nan")])
+    p._on_prediction(_Sample(hit))
+    p._on_state(_Sample(_state(1)))
+    assert p.runner.collision_stops == 1
+    kinds = [e.kind for e in p._events]
+    assert "COLLISION_PREDICTED" in kinds
+    p._on_prediction(_Sample(_prediction(2)))
+    p._on_state(_Sample(_state(2)))
+    assert "PATH_CLEAR" in [e.kind for e in p._events]

@@ -200,7 +200,7 @@ class ObstacleSet(_message.Message):
     def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., frame_id: _Optional[str] = ..., obstacles: _Optional[_Iterable[_Union[Obstacle, _Mapping]]] = ...) -> None: ...
 
 class CollisionPrediction(_message.Message):
-    __slots__ = ("stamp_ns", "seq", "collision", "obstacle_id", "stop_position", "time_to_collision_s", "state_tick")
+    __slots__ = ("stamp_ns", "seq", "collision", "obstacle_id", "stop_position", "time_to_collision_s", "state_tick", "goal", "goal_known", "inside", "entry_point", "entry_distance_m", "min_clearance_m", "closest_link", "clearance_obstacle_id", "clearance_tick", "protective_stop", "detail", "obstacle_count")
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     COLLISION_FIELD_NUMBER: _ClassVar[int]
@@ -208,6 +208,18 @@ class CollisionPrediction(_message.Message):
     STOP_POSITION_FIELD_NUMBER: _ClassVar[int]
     TIME_TO_COLLISION_S_FIELD_NUMBER: _ClassVar[int]
     STATE_TICK_FIELD_NUMBER: _ClassVar[int]
+    GOAL_FIELD_NUMBER: _ClassVar[int]
+    GOAL_KNOWN_FIELD_NUMBER: _ClassVar[int]
+    INSIDE_FIELD_NUMBER: _ClassVar[int]
+    ENTRY_POINT_FIELD_NUMBER: _ClassVar[int]
+    ENTRY_DISTANCE_M_FIELD_NUMBER: _ClassVar[int]
+    MIN_CLEARANCE_M_FIELD_NUMBER: _ClassVar[int]
+    CLOSEST_LINK_FIELD_NUMBER: _ClassVar[int]
+    CLEARANCE_OBSTACLE_ID_FIELD_NUMBER: _ClassVar[int]
+    CLEARANCE_TICK_FIELD_NUMBER: _ClassVar[int]
+    PROTECTIVE_STOP_FIELD_NUMBER: _ClassVar[int]
+    DETAIL_FIELD_NUMBER: _ClassVar[int]
+    OBSTACLE_COUNT_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     seq: int
     collision: bool
@@ -215,10 +227,50 @@ class CollisionPrediction(_message.Message):
     stop_position: _containers.RepeatedScalarFieldContainer[float]
     time_to_collision_s: float
     state_tick: int
-    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., collision: _Optional[bool] = ..., obstacle_id: _Optional[str] = ..., stop_position: _Optional[_Iterable[float]] = ..., time_to_collision_s: _Optional[float] = ..., state_tick: _Optional[int] = ...) -> None: ...
+    goal: Vec3
+    goal_known: bool
+    inside: bool
+    entry_point: Vec3
+    entry_distance_m: float
+    min_clearance_m: float
+    closest_link: str
+    clearance_obstacle_id: str
+    clearance_tick: int
+    protective_stop: bool
+    detail: str
+    obstacle_count: int
+    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., collision: _Optional[bool] = ..., obstacle_id: _Optional[str] = ..., stop_position: _Optional[_Iterable[float]] = ..., time_to_collision_s: _Optional[float] = ..., state_tick: _Optional[int] = ..., goal: _Optional[_Union[Vec3, _Mapping]] = ..., goal_known: _Optional[bool] = ..., inside: _Optional[bool] = ..., entry_point: _Optional[_Union[Vec3, _Mapping]] = ..., entry_distance_m: _Optional[float] = ..., min_clearance_m: _Optional[float] = ..., closest_link: _Optional[str] = ..., clearance_obstacle_id: _Optional[str] = ..., clearance_tick: _Optional[int] = ..., protective_stop: _Optional[bool] = ..., detail: _Optional[str] = ..., obstacle_count: _Optional[int] = ...) -> None: ...
+
+class ObstacleCommand(_message.Message):
+    __slots__ = ("stamp_ns", "seq", "action", "obstacle", "id", "source")
+    class Action(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+        __slots__ = ()
+        ACTION_UNSPECIFIED: _ClassVar[ObstacleCommand.Action]
+        ADD: _ClassVar[ObstacleCommand.Action]
+        MOVE: _ClassVar[ObstacleCommand.Action]
+        REMOVE: _ClassVar[ObstacleCommand.Action]
+        CLEAR: _ClassVar[ObstacleCommand.Action]
+    ACTION_UNSPECIFIED: ObstacleCommand.Action
+    ADD: ObstacleCommand.Action
+    MOVE: ObstacleCommand.Action
+    REMOVE: ObstacleCommand.Action
+    CLEAR: ObstacleCommand.Action
+    STAMP_NS_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    OBSTACLE_FIELD_NUMBER: _ClassVar[int]
+    ID_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    stamp_ns: int
+    seq: int
+    action: ObstacleCommand.Action
+    obstacle: Obstacle
+    id: str
+    source: str
+    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., action: _Optional[_Union[ObstacleCommand.Action, str]] = ..., obstacle: _Optional[_Union[Obstacle, _Mapping]] = ..., id: _Optional[str] = ..., source: _Optional[str] = ...) -> None: ...
 
 class PlannerStatus(_message.Message):
-    __slots__ = ("stamp_ns", "seq", "state", "task", "segment_index", "time_to_go_s", "goal", "goal_name", "state_tick", "detail", "step", "step_index", "step_count", "mode", "distance_to_goal_m", "speed_mps", "orientation_reference", "latency_p50_us", "latency_p99_us", "latency_max_us", "answered", "rejected_states", "rejected_goals", "step_elapsed_s", "goal_speed_mps")
+    __slots__ = ("stamp_ns", "seq", "state", "task", "segment_index", "time_to_go_s", "goal", "goal_name", "state_tick", "detail", "step", "step_index", "step_count", "mode", "distance_to_goal_m", "speed_mps", "orientation_reference", "latency_p50_us", "latency_p99_us", "latency_max_us", "answered", "rejected_states", "rejected_goals", "step_elapsed_s", "goal_speed_mps", "collision_check", "collision", "obstacle_id", "stop_position", "min_clearance_m", "prediction_age_s", "monitor_alive", "collision_stops", "waited_states")
     class State(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         STATE_UNSPECIFIED: _ClassVar[PlannerStatus.State]
@@ -258,6 +310,15 @@ class PlannerStatus(_message.Message):
     REJECTED_GOALS_FIELD_NUMBER: _ClassVar[int]
     STEP_ELAPSED_S_FIELD_NUMBER: _ClassVar[int]
     GOAL_SPEED_MPS_FIELD_NUMBER: _ClassVar[int]
+    COLLISION_CHECK_FIELD_NUMBER: _ClassVar[int]
+    COLLISION_FIELD_NUMBER: _ClassVar[int]
+    OBSTACLE_ID_FIELD_NUMBER: _ClassVar[int]
+    STOP_POSITION_FIELD_NUMBER: _ClassVar[int]
+    MIN_CLEARANCE_M_FIELD_NUMBER: _ClassVar[int]
+    PREDICTION_AGE_S_FIELD_NUMBER: _ClassVar[int]
+    MONITOR_ALIVE_FIELD_NUMBER: _ClassVar[int]
+    COLLISION_STOPS_FIELD_NUMBER: _ClassVar[int]
+    WAITED_STATES_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     seq: int
     state: PlannerStatus.State
@@ -283,7 +344,16 @@ class PlannerStatus(_message.Message):
     rejected_goals: int
     step_elapsed_s: float
     goal_speed_mps: float
-    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., state: _Optional[_Union[PlannerStatus.State, str]] = ..., task: _Optional[str] = ..., segment_index: _Optional[_Iterable[int]] = ..., time_to_go_s: _Optional[_Iterable[float]] = ..., goal: _Optional[_Union[Vec3, _Mapping]] = ..., goal_name: _Optional[str] = ..., state_tick: _Optional[int] = ..., detail: _Optional[str] = ..., step: _Optional[str] = ..., step_index: _Optional[int] = ..., step_count: _Optional[int] = ..., mode: _Optional[_Iterable[str]] = ..., distance_to_goal_m: _Optional[float] = ..., speed_mps: _Optional[float] = ..., orientation_reference: _Optional[_Union[Quat, _Mapping]] = ..., latency_p50_us: _Optional[float] = ..., latency_p99_us: _Optional[float] = ..., latency_max_us: _Optional[float] = ..., answered: _Optional[int] = ..., rejected_states: _Optional[int] = ..., rejected_goals: _Optional[int] = ..., step_elapsed_s: _Optional[float] = ..., goal_speed_mps: _Optional[float] = ...) -> None: ...
+    collision_check: bool
+    collision: bool
+    obstacle_id: str
+    stop_position: _containers.RepeatedScalarFieldContainer[float]
+    min_clearance_m: float
+    prediction_age_s: float
+    monitor_alive: bool
+    collision_stops: int
+    waited_states: int
+    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., state: _Optional[_Union[PlannerStatus.State, str]] = ..., task: _Optional[str] = ..., segment_index: _Optional[_Iterable[int]] = ..., time_to_go_s: _Optional[_Iterable[float]] = ..., goal: _Optional[_Union[Vec3, _Mapping]] = ..., goal_name: _Optional[str] = ..., state_tick: _Optional[int] = ..., detail: _Optional[str] = ..., step: _Optional[str] = ..., step_index: _Optional[int] = ..., step_count: _Optional[int] = ..., mode: _Optional[_Iterable[str]] = ..., distance_to_goal_m: _Optional[float] = ..., speed_mps: _Optional[float] = ..., orientation_reference: _Optional[_Union[Quat, _Mapping]] = ..., latency_p50_us: _Optional[float] = ..., latency_p99_us: _Optional[float] = ..., latency_max_us: _Optional[float] = ..., answered: _Optional[int] = ..., rejected_states: _Optional[int] = ..., rejected_goals: _Optional[int] = ..., step_elapsed_s: _Optional[float] = ..., goal_speed_mps: _Optional[float] = ..., collision_check: _Optional[bool] = ..., collision: _Optional[bool] = ..., obstacle_id: _Optional[str] = ..., stop_position: _Optional[_Iterable[float]] = ..., min_clearance_m: _Optional[float] = ..., prediction_age_s: _Optional[float] = ..., monitor_alive: _Optional[bool] = ..., collision_stops: _Optional[int] = ..., waited_states: _Optional[int] = ...) -> None: ...
 
 class TaskEvent(_message.Message):
     __slots__ = ("stamp_ns", "seq", "task", "kind", "detail", "step", "step_index", "state_tick", "summary_json")
@@ -301,6 +371,8 @@ class TaskEvent(_message.Message):
         ERROR: _ClassVar[TaskEvent.Kind]
         GRIPPER: _ClassVar[TaskEvent.Kind]
         STEP_COMPLETED: _ClassVar[TaskEvent.Kind]
+        COLLISION_PREDICTED: _ClassVar[TaskEvent.Kind]
+        PATH_CLEAR: _ClassVar[TaskEvent.Kind]
     KIND_UNSPECIFIED: TaskEvent.Kind
     STARTED: TaskEvent.Kind
     SEGMENT_CHANGED: TaskEvent.Kind
@@ -313,6 +385,8 @@ class TaskEvent(_message.Message):
     ERROR: TaskEvent.Kind
     GRIPPER: TaskEvent.Kind
     STEP_COMPLETED: TaskEvent.Kind
+    COLLISION_PREDICTED: TaskEvent.Kind
+    PATH_CLEAR: TaskEvent.Kind
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     TASK_FIELD_NUMBER: _ClassVar[int]
