@@ -225,10 +225,10 @@ class _Elements:
     extents; ``bound (E,) [m]`` bounding-sphere radius about the centre.
 
     Component-major copies for the vectorised test (axis first, so that sums over the three
-    local axes add three contiguous rows): ``rt_cm (3, 3E)`` with column ``a E + e`` the local
-    axis ``a`` of element ``e`` in the world (``x @ rt_cm`` gives every element's local
-    coordinates of ``x`` at once), ``centre_cm (3, E)`` = ``(Rᵀ c)ᵀ``, ``half_cm (3, E)``,
-    ``radial_cm (3, E)``.
+    local axes add three contiguous rows): ``rt_h (4, 3E)``, whose column ``a E + e`` is the
+    local axis ``a`` of element ``e`` in the world over ``−(Rᵀ c)_a`` (so ``[x, 1] @ rt_h`` gives
+    every element's local coordinates of the point ``x`` and ``[d, 0] @ rt_h`` those of the
+    direction ``d``, in one product), ``half_cm (3, E)``, ``radial_cm (3, E)``.
     """
 
     owner: NDArray[np.intp]
@@ -240,17 +240,17 @@ class _Elements:
     radius2: FloatArray
     aabb_half: FloatArray
     bound: FloatArray
-    rt_cm: FloatArray = field(init=False)
-    centre_cm: FloatArray = field(init=False)
+    rt_h: FloatArray = field(init=False)
     half_cm: FloatArray = field(init=False)
     radial_cm: FloatArray = field(init=False)
 
     def __post_init__(self) -> None:
         E = self.owner.shape[0]
-        # rotation[e, :, a] is local axis a in the world; column a E + e of rt_cm.
-        rt_cm = np.ascontiguousarray(self.rotation.transpose(1, 2, 0).reshape(3, 3 * E))
-        centre_cm = np.einsum("eia,ei->ae", self.rotation, self.centre)
-        for name, arr in (("rt_cm", rt_cm), ("centre_cm", centre_cm),
+        # rotation[e, :, a] is local axis a in the world: column a E + e of rt_h.
+        rt_h = np.empty((4, 3 * E))
+        rt_h[:3] = self.rotation.transpose(1, 2, 0).reshape(3, 3 * E)
+        rt_h[3] = -np.einsum("eia,ei->ae", self.rotation, self.centre).reshape(3 * E)
+        for name, arr in (("rt_h", rt_h),
                           ("half_cm", np.ascontiguousarray(self.half.T)),
                           ("radial_cm", np.ascontiguousarray(self.radial.T))):
             object.__setattr__(self, name, arr)
@@ -459,8 +459,11 @@ def _narrow(p: FloatArray, d: FloatArray, el: _Elements) -> tuple[FloatArray, Fl
     False, i.e. a miss (a grazing line).
     """
     E = el.owner.shape[0]
-    M = (np.array([p, d]) @ el.rt_cm).reshape(2, 3, E)  # Rᵀ p and Rᵀ d of every element
-    M[0] -= el.centre_cm  # Rᵀ (p − c)
+    pd = np.zeros((2, 4))
+    pd[0, :3] = p
+    pd[0, 3] = 1.0
+    pd[1, :3] = d
+    M = (pd @ el.rt_h).reshape(2, 3, E)  # Rᵀ (p − c) and Rᵀ d of every element
     f = M[0]
     g = M[1]
     # Slabs: entry (-sign(g) h - f)/g, exit (sign(g) h - f)/g. With g_a = 0 the division gives
@@ -483,44 +486,49 @@ def _narrow(p: FloatArray, d: FloatArray, el: _Elements) -> tuple[FloatArray, Fl
     return t_in, t_out, M
 
 
-def _entry_normal(f: FloatArray, g: FloatArray, t: float, el: _Elements, e: int) -> FloatArray:
-    """Local outward normal ``(3,)`` of the constraint of element ``e`` that the line
-    ``f + t g`` (local frame) enters last, at its entry parameter ``t``."""
-    h = el.half[e]
-    w = el.radial[e]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        entries = (-np.copysign(h, g) - f) / g
-    entries = np.where(np.isnan(entries), -np.inf, entries)
-    ax = int(np.argmax(entries))
-    n = np.zeros(3)
-    a = float((w * g) @ g)
+def _entry_normal(f: list[float], g: list[float], t: float, el: _Elements, e: int) -> list[float]:
+    """Local outward normal of the constraint of element ``e`` that the line ``f + t g`` (local
+    frame, plain floats) enters last, at its entry parameter ``t``."""
+    h = el.half[e].tolist()
+    w = el.radial[e].tolist()
+    ax, slab_in = -1, -math.inf
+    for i in range(3):
+        if g[i] != 0.0:
+            entry = (-math.copysign(h[i], g[i]) - f[i]) / g[i]
+            if entry > slab_in:
+                ax, slab_in = i, entry
+    a = w[0] * g[0] * g[0] + w[1] * g[1] * g[1] + w[2] * g[2] * g[2]
     if a > 0.0:
-        b = float((w * f) @ g)
-        c = float((w * f) @ f) - float(el.radius2[e])
+        b = w[0] * f[0] * g[0] + w[1] * f[1] * g[1] + w[2] * f[2] * g[2]
+        c = w[0] * f[0] * f[0] + w[1] * f[1] * f[1] + w[2] * f[2] * f[2] - float(el.radius2[e])
         r_in = (-b - math.sqrt(max(b * b - a * c, 0.0))) / a
-        if r_in > entries[ax]:
-            n = w * (f + t * g)
-            return n / np.linalg.norm(n)
-    n[ax] = -math.copysign(1.0, g[ax])
-    return n
+        if r_in > slab_in or ax < 0:
+            x = [w[i] * (f[i] + t * g[i]) for i in range(3)]
+            n = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
+            return [x[0] / n, x[1] / n, x[2] / n]
+    out = [0.0, 0.0, 0.0]
+    out[ax] = -math.copysign(1.0, g[ax])
+    return out
 
 
-def _inside_normal(f: FloatArray, el: _Elements, e: int) -> FloatArray:
-    """Local outward normal ``(3,)`` of the surface of element ``e`` nearest to the inside point
-    ``f`` (local frame): the quadric's gradient or a slab face, whichever is shallower. On a
-    cylinder's axis or at a sphere's centre the radial direction is arbitrary: local +x."""
-    slab = np.abs(f) - el.half[e]
-    ax = int(np.argmax(slab))
-    wf = el.radial[e] * f
-    rho = float(np.linalg.norm(wf))
-    n = np.zeros(3)
+def _inside_normal(f: list[float], el: _Elements, e: int) -> list[float]:
+    """Local outward normal of the surface of element ``e`` nearest to the inside point ``f``
+    (local frame): the quadric's gradient or a slab face, whichever is shallower. On a cylinder's
+    axis or at a sphere's centre the radial direction is arbitrary: local +x."""
+    h = el.half[e].tolist()
+    w = el.radial[e].tolist()
+    slab = [abs(f[i]) - h[i] for i in range(3)]
+    ax = max(range(3), key=slab.__getitem__)
+    wf = [w[i] * f[i] for i in range(3)]
+    rho = math.sqrt(wf[0] * wf[0] + wf[1] * wf[1] + wf[2] * wf[2])
+    out = [0.0, 0.0, 0.0]
     if rho - float(el.radius[e]) > slab[ax]:
         if rho > 0.0:
-            return wf / rho
-        n[0] = 1.0
-        return n
-    n[ax] = 1.0 if f[ax] >= 0.0 else -1.0
-    return n
+            return [wf[0] / rho, wf[1] / rho, wf[2] / rho]
+        out[0] = 1.0
+        return out
+    out[ax] = 1.0 if f[ax] >= 0.0 else -1.0
+    return out
 
 
 def segment_check(
@@ -588,50 +596,60 @@ def segment_check(
             elif L <= POINT_TOL_M:
                 return _NO_HIT
     inside = bool(t_in[j] < -tau and t_out[j] > tau)
-    f = M[0, :, j]
-    g = M[1, :, j]
+    # The winner only, in plain floats (3-vectors are cheaper in Python than in numpy).
+    f = M[0, :, j].tolist()
     owner = int(el.owner[j])
     R = el.rotation[j]
-    stop = np.full(3, np.nan)
+    pl = p.tolist()
+    dl = d.tolist()
+    stop = [math.nan, math.nan, math.nan]
     if inside:
-        normal = R @ _inside_normal(f, el, j)
-        deeper = normal * d < 0.0
-        stop[deeper] = p[deeper]
-        return SegmentHit(True, owner, compiled.ids[owner], 0.0, p.copy(), normal, stop, True, 0.0, 0.0)
-    frac = max(float(t_in[j]), 0.0)
-    entry = p + frac * d
-    normal = R @ _entry_normal(f, g, float(t_in[j]), el, j)
-    _stop_axes(p, d, entry, normal, el.centre[j], el.aabb_half[j], stop)
+        normal = R @ np.array(_inside_normal(f, el, j))
+        for i in range(3):
+            if normal[i] * dl[i] < 0.0:  # this axis's motion goes deeper: hold it
+                stop[i] = pl[i]
+        return SegmentHit(True, owner, compiled.ids[owner], 0.0, p.copy(), normal, np.array(stop), True,
+                          0.0, 0.0)
+    t_j = float(t_in[j])
+    frac = max(t_j, 0.0)
+    entry = [pl[i] + frac * dl[i] for i in range(3)]
+    normal = R @ np.array(_entry_normal(f, M[1, :, j].tolist(), t_j, el, j))
+    _stop_axes(pl, dl, entry, normal.tolist(), el.centre[j].tolist(), el.aabb_half[j].tolist(), stop)
     dist = frac * L
     ttc = math.inf
     if velocity is not None:
         speed = float(np.asarray(velocity, dtype=float) @ d) / L
         if speed > 0.0:
             ttc = dist / speed
-    return SegmentHit(True, owner, compiled.ids[owner], frac, entry, normal, stop, False, dist, ttc)
+    return SegmentHit(True, owner, compiled.ids[owner], frac, np.array(entry), normal, np.array(stop), False,
+                      dist, ttc)
 
 
-def _stop_axes(p: FloatArray, d: FloatArray, entry: FloatArray, normal: FloatArray, centre: FloatArray,
-               aabb_half: FloatArray, stop: FloatArray) -> None:
-    """Fill ``stop (3,)`` for a segment ``p + t d`` entering at ``entry`` through a surface of
-    outward ``normal``, of an obstacle whose world AABB is ``centre ± aabb_half`` (module doc)."""
-    lo_b = centre - aabb_half
-    hi_b = centre + aabb_half
-    outside = (p <= lo_b) | (p >= hi_b)
-    if np.any(outside):
-        # The AABB entry axis: the slab entered last. Only axes the start is outside of can be
-        # entered (the others contain the start), and they must be moving towards the box.
-        with np.errstate(divide="ignore", invalid="ignore"):
-            face = np.where(d > 0.0, lo_b, hi_b)
-            t_face = np.where(outside & (d != 0.0), (face - p) / d, -np.inf)
-        a = int(np.argmax(t_face))
-        if t_face[a] > -np.inf:
-            stop[a] = face[a]
-            return
+def _stop_axes(p: list[float], d: list[float], entry: list[float], normal: list[float], centre: list[float],
+               aabb_half: list[float], stop: list[float]) -> None:
+    """Fill ``stop`` (3 floats, NaN = goes on) for a segment ``p + t d`` entering at ``entry``
+    through a surface of outward ``normal``, of an obstacle whose world AABB is
+    ``centre ± aabb_half`` (module doc)."""
+    # The AABB entry axis: the slab entered last. Only axes the start is outside of can be entered
+    # (the others contain the start), and only when moving towards the box.
+    best_a, best_t = -1, -math.inf
+    for a in range(3):
+        lo_b = centre[a] - aabb_half[a]
+        hi_b = centre[a] + aabb_half[a]
+        if (p[a] <= lo_b and d[a] > 0.0) or (p[a] >= hi_b and d[a] < 0.0):
+            face = lo_b if d[a] > 0.0 else hi_b
+            t = (face - p[a]) / d[a]
+            if t > best_t:
+                best_a, best_t = a, t
+                stop_face = face
+    if best_a >= 0:
+        stop[best_a] = stop_face
+        return
     # Start inside the AABB: the tangent plane at the entry point separates.
-    nd = normal * d
-    stopped = nd < 0.0
-    s = float(nd[stopped].sum())
+    nd = [normal[a] * d[a] for a in range(3)]
+    s = sum(x for x in nd if x < 0.0)
     if s < 0.0:
-        mu = min(1.0, float(nd.sum()) / s)
-        stop[stopped] = p[stopped] + mu * (entry[stopped] - p[stopped])
+        mu = min(1.0, (nd[0] + nd[1] + nd[2]) / s)
+        for a in range(3):
+            if nd[a] < 0.0:
+                stop[a] = p[a] + mu * (entry[a] - p[a])
