@@ -46,10 +46,12 @@ Semantics of the test (``docs/obstacles.md`` has the derivations):
   inside one copy, so the union of the copies covers the swept volume (conservative). The first
   copy hit along the segment wins; ``H = 0`` tests the obstacles where they are now.
 
-The test is vectorised over all obstacles: a broad phase (segment vs bounding sphere, one
-numpy pass) and a narrow phase on the candidates only, in one shape-parametric formulation (each
-shape is the intersection of three slabs and one "radial" quadric in its local frame: a box has
-no quadric, a sphere no slabs, a cylinder one slab and a 2-D quadric).
+The test is vectorised over all obstacles in one shape-parametric formulation: each shape is
+the intersection of three slabs and one "radial" quadric in its local frame (a box has no
+quadric, a sphere no slabs, a cylinder one slab and a 2-D quadric), so one pass of numpy
+operations tests every obstacle whatever its shape. Above :data:`BROAD_PHASE_MIN` elements a
+broad phase (segment vs bounding sphere) selects the candidates first; below it the exact test of
+all elements is cheaper, numpy's per-call overhead dominating at that size.
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -241,6 +244,7 @@ class _Elements:
     aabb_half: FloatArray
     bound: FloatArray
     rt_h: FloatArray = field(init=False)
+    bounds_template: FloatArray = field(init=False)
     half_cm: FloatArray = field(init=False)
     radial_cm: FloatArray = field(init=False)
 
@@ -250,7 +254,11 @@ class _Elements:
         rt_h = np.empty((4, 3 * E))
         rt_h[:3] = self.rotation.transpose(1, 2, 0).reshape(3, 3 * E)
         rt_h[3] = -np.einsum("eia,ei->ae", self.rotation, self.centre).reshape(3 * E)
-        for name, arr in (("rt_h", rt_h),
+        # Parameter bounds of the test: rows 0-2 the slabs, 3 the quadric, 4 the segment [0, 1].
+        bounds = np.empty((2, 5, E))
+        bounds[0, 4] = 0.0
+        bounds[1, 4] = 1.0
+        for name, arr in (("rt_h", rt_h), ("bounds_template", bounds),
                           ("half_cm", np.ascontiguousarray(self.half.T)),
                           ("radial_cm", np.ascontiguousarray(self.radial.T))):
             object.__setattr__(self, name, arr)
@@ -399,9 +407,8 @@ def compile_obstacles(obstacles: Sequence[Obstacle], margin_m: float = 0.0) -> C
                              centre, rotation, half, radius, velocity)
 
 
-@dataclass(frozen=True)
-class SegmentHit:
-    """Result of :func:`segment_check`.
+class SegmentHit(NamedTuple):
+    """Result of :func:`segment_check` (an immutable named tuple: cheap to build at every tick).
 
     Attributes:
         collision: the segment enters an inflated obstacle (or starts inside one).
@@ -443,20 +450,24 @@ BROAD_PHASE_MIN = 256
 
 
 _SLAB_SIGN = np.array([-1.0, 1.0]).reshape(2, 1, 1)
+_ROOT_SIGN = np.array([1.0, -1.0]).reshape(2, 1)
 
 
-def _narrow(p: FloatArray, d: FloatArray, el: _Elements) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Exact test of the line ``p + t d`` (``t ∈ R``) against every element's open shape.
+def _narrow(p: FloatArray, d: FloatArray, el: _Elements) -> tuple[
+        FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Exact test of the segment ``p + t d`` (``t ∈ [0, 1]``) against every element's open shape.
 
     Each shape is ``{x : |x_a| < h_a for a = 0..2, Σ w_a x_a² < r²}`` in its local frame, so the
     line is inside over ``t_in < t < t_out`` with ``t_in`` the largest entry parameter of the
-    three slabs and the quadric and ``t_out`` the smallest exit. Call it under
-    ``np.errstate(divide="ignore", invalid="ignore")``.
+    three slabs and the quadric and ``t_out`` the smallest exit; the segment's own bounds 0 and
+    1 are a fifth constraint. Call it under ``np.errstate(divide="ignore", invalid="ignore")``.
 
-    Returns ``t_in (E,)``, ``t_out (E,)`` and ``M (2, 3, E)``: the local start ``Rᵀ (p − c)``
-    (``M[0]``) and direction ``Rᵀ d`` (``M[1]``), component-major. A line that misses a quadric,
-    or lies in a slab's boundary plane, gets NaN parameters: every comparison with them is
-    False, i.e. a miss (a grazing line).
+    Returns ``lo (E,)`` = ``max(t_in, 0)``, ``hi (E,)`` = ``min(t_out, 1)``, ``B (2, 5, E)`` the
+    entry (``B[0]``) and exit (``B[1]``) parameters of the constraints (rows: three slabs, the
+    quadric, the segment) and ``M (2, 3, E)`` the local start ``Rᵀ (p − c)`` (``M[0]``) and
+    direction ``Rᵀ d`` (``M[1]``), component-major. A line that misses a quadric, or lies in a
+    slab's boundary plane, gets NaN parameters: every comparison with them is False, i.e. a miss
+    (a grazing line).
     """
     E = el.owner.shape[0]
     pd = np.zeros((2, 4))
@@ -466,12 +477,11 @@ def _narrow(p: FloatArray, d: FloatArray, el: _Elements) -> tuple[FloatArray, Fl
     M = (pd @ el.rt_h).reshape(2, 3, E)  # Rᵀ (p − c) and Rᵀ d of every element
     f = M[0]
     g = M[1]
+    B = el.bounds_template.copy()
     # Slabs: entry (-sign(g) h - f)/g, exit (sign(g) h - f)/g. With g_a = 0 the division gives
     # -inf/+inf when |f_a| < h_a (inside for every t), an empty interval when outside, NaN on the
     # boundary plane; an absent slab (h = inf) gives (-inf, inf).
-    T = (_SLAB_SIGN * np.copysign(el.half_cm, g) - f) / g
-    slab_in = T[0].max(axis=0)
-    slab_out = T[1].min(axis=0)
+    np.divide(_SLAB_SIGN * np.copysign(el.half_cm, g) - f, g, out=B[:, :3])
     # Quadric a t² + 2 b t + c < 0 with a = gᵀWg, b = fᵀWg, c = fᵀWf − r²: roots −(b ± √(b² − ac))/a.
     # a gets 1e-300 so that a line parallel to a cylinder's axis (a = 0) is inside for all t when
     # c < 0 (roots at ±1e150 √|c|) and misses when c > 0 (NaN); a box (W = 0, r = 1e100) is
@@ -480,32 +490,21 @@ def _narrow(p: FloatArray, d: FloatArray, el: _Elements) -> tuple[FloatArray, Fl
     b = G[0, 1]
     a = G[1, 1] + 1e-300
     sq = np.sqrt(b * b - a * (G[0, 0] - el.radius2))
-    nia = -1.0 / a
-    t_in = np.maximum(slab_in, (b + sq) * nia)
-    t_out = np.minimum(slab_out, (b - sq) * nia)
-    return t_in, t_out, M
+    np.multiply(b + _ROOT_SIGN * sq, -1.0 / a, out=B[:, 3])
+    return B[0].max(axis=0), B[1].min(axis=0), B, M
 
 
-def _entry_normal(f: list[float], g: list[float], t: float, el: _Elements, e: int) -> list[float]:
+def _entry_normal(f: list[float], g: list[float], t: float, slab_entries: list[float], quadric_last: bool,
+                  el: _Elements, e: int) -> list[float]:
     """Local outward normal of the constraint of element ``e`` that the line ``f + t g`` (local
-    frame, plain floats) enters last, at its entry parameter ``t``."""
-    h = el.half[e].tolist()
-    w = el.radial[e].tolist()
-    ax, slab_in = -1, -math.inf
-    for i in range(3):
-        if g[i] != 0.0:
-            entry = (-math.copysign(h[i], g[i]) - f[i]) / g[i]
-            if entry > slab_in:
-                ax, slab_in = i, entry
-    a = w[0] * g[0] * g[0] + w[1] * g[1] * g[1] + w[2] * g[2] * g[2]
-    if a > 0.0:
-        b = w[0] * f[0] * g[0] + w[1] * f[1] * g[1] + w[2] * f[2] * g[2]
-        c = w[0] * f[0] * f[0] + w[1] * f[1] * f[1] + w[2] * f[2] * f[2] - float(el.radius2[e])
-        r_in = (-b - math.sqrt(max(b * b - a * c, 0.0))) / a
-        if r_in > slab_in or ax < 0:
-            x = [w[i] * (f[i] + t * g[i]) for i in range(3)]
-            n = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
-            return [x[0] / n, x[1] / n, x[2] / n]
+    frame, plain floats) enters last, at its entry parameter ``t``: the quadric's gradient if
+    ``quadric_last``, else the face of the slab with the largest of ``slab_entries``."""
+    if quadric_last:
+        w = el.radial[e].tolist()
+        x = [w[i] * (f[i] + t * g[i]) for i in range(3)]
+        n = math.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
+        return [x[0] / n, x[1] / n, x[2] / n]
+    ax = max(range(3), key=slab_entries.__getitem__)
     out = [0.0, 0.0, 0.0]
     out[ax] = -math.copysign(1.0, g[ax])
     return out
@@ -572,12 +571,11 @@ def segment_check(
             return _NO_HIT
         el = el.subset(cand)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t_in, t_out, M = _narrow(p, d, el)
+        lo, hi, B, M = _narrow(p, d, el)
         if L > POINT_TOL_M:
             # Hit: overlap of [0, 1] with (t_in, t_out) longer than the grazing tolerance (NaN
             # parameters compare False: a miss); the first entry along the segment wins.
-            lo = np.maximum(t_in, 0.0)
-            key = np.where(np.minimum(t_out, 1.0) - lo > GRAZE_TOL_M / L, lo, np.inf)
+            key = np.where(hi - lo > GRAZE_TOL_M / L, lo, np.inf)
             j = int(np.argmin(key))
             if key[j] == np.inf:
                 return _NO_HIT
@@ -590,12 +588,14 @@ def segment_check(
         tau = GRAZE_TOL_M / L if L > POINT_TOL_M else 0.0
         if check_inside:
             # A start inside wins over entries at fraction 0.
-            inside_idx = np.flatnonzero((t_in < -tau) & (t_out > tau))
+            inside_idx = np.flatnonzero((B[0, :4].max(axis=0) < -tau) & (B[1, :4].min(axis=0) > tau))
             if inside_idx.shape[0]:
                 j = int(inside_idx[0])
             elif L <= POINT_TOL_M:
                 return _NO_HIT
-    inside = bool(t_in[j] < -tau and t_out[j] > tau)
+    entries = B[0, :4, j].tolist()  # slabs, quadric (never NaN for a winner: NaN compares False)
+    t_j = max(entries)
+    inside = t_j < -tau and float(B[1, :4, j].min()) > tau
     # The winner only, in plain floats (3-vectors are cheaper in Python than in numpy).
     f = M[0, :, j].tolist()
     owner = int(el.owner[j])
@@ -610,10 +610,11 @@ def segment_check(
                 stop[i] = pl[i]
         return SegmentHit(True, owner, compiled.ids[owner], 0.0, p.copy(), normal, np.array(stop), True,
                           0.0, 0.0)
-    t_j = float(t_in[j])
     frac = max(t_j, 0.0)
     entry = [pl[i] + frac * dl[i] for i in range(3)]
-    normal = R @ np.array(_entry_normal(f, M[1, :, j].tolist(), t_j, el, j))
+    slab_entries = entries[:3]
+    quadric_last = entries[3] > max(slab_entries)
+    normal = R @ np.array(_entry_normal(f, M[1, :, j].tolist(), t_j, slab_entries, quadric_last, el, j))
     _stop_axes(pl, dl, entry, normal.tolist(), el.centre[j].tolist(), el.aabb_half[j].tolist(), stop)
     dist = frac * L
     ttc = math.inf

@@ -419,3 +419,20 @@ def test_stop_rule_is_exercised_by_the_property() -> None:
         goal = o.position + np.array([0.05, 1.0, -0.05])
         ok, triggered = _mover_stays_out(o, 0.02, start, goal)
         assert ok and triggered
+
+
+def test_broad_phase_changes_nothing(monkeypatch: pytest.MonkeyPatch) -> None:
+    import psm.obstacles as obstacles_module
+
+    rng = np.random.default_rng(21)
+    obs = [_random_obstacle(rng, str(i)) for i in range(300)]  # above BROAD_PHASE_MIN elements
+    c = compile_obstacles(obs, 0.01)
+    segs = rng.uniform(-1, 1, (150, 2, 3))
+    with_broad = [segment_check(s, g, c) for s, g in segs]
+    monkeypatch.setattr(obstacles_module, "BROAD_PHASE_MIN", 10**9)
+    without = [segment_check(s, g, c) for s, g in segs]
+    assert sum(h.collision for h in with_broad) > 10
+    for a, b in zip(with_broad, without, strict=True):
+        assert (a.collision, a.obstacle_index, a.inside) == (b.collision, b.obstacle_index, b.inside)
+        np.testing.assert_allclose(a.stop_position, b.stop_position, equal_nan=True)
+        np.testing.assert_allclose(a.entry_point, b.entry_point, equal_nan=True)
