@@ -597,33 +597,40 @@ def segment_check(
     t_j = max(entries)
     inside = t_j < -tau and float(B[1, :4, j].min()) > tau
     # The winner only, in plain floats (3-vectors are cheaper in Python than in numpy).
-    f = M[0, :, j].tolist()
+    f, g = M[:, :, j].tolist()
     owner = int(el.owner[j])
-    R = el.rotation[j]
+    R = el.rotation[j].tolist()
     pl = p.tolist()
     dl = d.tolist()
     stop = [math.nan, math.nan, math.nan]
     if inside:
-        normal = R @ np.array(_inside_normal(f, el, j))
+        normal = _rotate(R, _inside_normal(f, el, j))
         for i in range(3):
             if normal[i] * dl[i] < 0.0:  # this axis's motion goes deeper: hold it
                 stop[i] = pl[i]
-        return SegmentHit(True, owner, compiled.ids[owner], 0.0, p.copy(), normal, np.array(stop), True,
-                          0.0, 0.0)
+        return SegmentHit(True, owner, compiled.ids[owner], 0.0, p.copy(), np.array(normal), np.array(stop),
+                          True, 0.0, 0.0)
     frac = max(t_j, 0.0)
     entry = [pl[i] + frac * dl[i] for i in range(3)]
     slab_entries = entries[:3]
     quadric_last = entries[3] > max(slab_entries)
-    normal = R @ np.array(_entry_normal(f, M[1, :, j].tolist(), t_j, slab_entries, quadric_last, el, j))
-    _stop_axes(pl, dl, entry, normal.tolist(), el.centre[j].tolist(), el.aabb_half[j].tolist(), stop)
+    normal = _rotate(R, _entry_normal(f, g, t_j, slab_entries, quadric_last, el, j))
+    _stop_axes(pl, dl, entry, normal, el.centre[j].tolist(), el.aabb_half[j].tolist(), stop)
     dist = frac * L
     ttc = math.inf
     if velocity is not None:
         speed = float(np.asarray(velocity, dtype=float) @ d) / L
         if speed > 0.0:
             ttc = dist / speed
-    return SegmentHit(True, owner, compiled.ids[owner], frac, np.array(entry), normal, np.array(stop), False,
-                      dist, ttc)
+    return SegmentHit(True, owner, compiled.ids[owner], frac, np.array(entry), np.array(normal),
+                      np.array(stop), False, dist, ttc)
+
+
+def _rotate(R: list[list[float]], n: list[float]) -> list[float]:
+    """``R n`` for a rotation ``R`` (3 rows of 3 floats) and a 3-vector, in plain floats."""
+    return [R[0][0] * n[0] + R[0][1] * n[1] + R[0][2] * n[2],
+            R[1][0] * n[0] + R[1][1] * n[1] + R[1][2] * n[2],
+            R[2][0] * n[0] + R[2][1] * n[1] + R[2][2] * n[2]]
 
 
 def _stop_axes(p: list[float], d: list[float], entry: list[float], normal: list[float], centre: list[float],
