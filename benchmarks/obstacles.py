@@ -26,7 +26,9 @@ Method
   original BVH meshes with coal (the straightforward use of coal).
 - Timing: ``time.perf_counter`` around each call, peers interleaved round by round so they see
   the same machine load; p50/p99 per call. Ratios are to the ``psm`` row measured in the same run.
-- Decimation: CPU of a 500 Hz monitor that checks every ``N`` ticks = mean check cost / (N · 2 ms);
+- CPU per call: ``time.process_time`` over each peer's block of calls / calls (the wall times
+  include the time other jobs of the shared machine held the core; the CPU time does not).
+- Decimation: CPU of a 500 Hz monitor that checks every ``N`` ticks = CPU per check / (N · 2 ms);
   the extra clearance needed for the ``N − 1`` unchecked ticks plus stopping is
   ``v N dt + v² / (2 a)`` (``docs/obstacles.md``).
 """
@@ -224,19 +226,26 @@ def _fcl_segment_peer(fcl: Any, obstacles: list[Obstacle], segs: np.ndarray) -> 
 
 
 def _time_interleaved(peers: dict[str, Callable[[int], Any]], k: int, rounds: int) -> tuple[
-        dict[str, list[float]], dict[str, list[Any]]]:
-    """Run every peer on queries ``0..k−1``, ``rounds`` times, peers interleaved per round."""
+        dict[str, list[float]], dict[str, list[Any]], dict[str, float]]:
+    """Run every peer on queries ``0..k−1``, ``rounds`` times, peers interleaved per round.
+
+    Returns the wall time of every call [s], the first round's answers and the CPU time of this
+    process per call [s] (``time.process_time``: what the calls cost a core, without the time
+    other jobs held it)."""
     times: dict[str, list[float]] = {name: [] for name in peers}
     answers: dict[str, list[Any]] = {name: [] for name in peers}
+    cpu: dict[str, float] = dict.fromkeys(peers, 0.0)
     for r in range(rounds):
         for name, fn in peers.items():
+            c0 = time.process_time()
             for i in range(k):
                 t0 = time.perf_counter()
                 out = fn(i)
                 times[name].append(time.perf_counter() - t0)
                 if r == 0:
                     answers[name].append(out)
-    return times, answers
+            cpu[name] += time.process_time() - c0
+    return times, answers, {name: c / (k * rounds) for name, c in cpu.items()}
 
 
 def bench_segments(n: int, k: int, rounds: int, fcl: Any) -> dict[str, Any]:
@@ -255,8 +264,8 @@ def bench_segments(n: int, k: int, rounds: int, fcl: Any) -> dict[str, Any]:
     for fn in peers.values():  # warm up (caches, lazy initialisation)
         for i in range(min(k, 50)):
             fn(i)
-    times, answers = _time_interleaved(peers, k, rounds)
-    stats = {name: summarize(t) for name, t in times.items()}
+    times, answers, cpu = _time_interleaved(peers, k, rounds)
+    stats = {name: summarize(t) | {"cpu_us": 1e6 * cpu[name]} for name, t in times.items()}
     ref = answers["psm"]
     agree = {name: float(np.mean([a == b for a, b in zip(ans, ref, strict=True)]))
              for name, ans in answers.items() if not name.startswith("psm")}
@@ -285,11 +294,12 @@ def bench_clearance(n: int, k: int, rounds: int, bvh_k: int) -> dict[str, Any]:
     for fn in peers.values():
         for i in range(min(k, 10)):
             fn(i)
-    times, answers = _time_interleaved(peers, k, rounds)
-    bvh_times, bvh_answers = _time_interleaved({"BVH brute (coal)": lambda i: bvh.check_brute(Q[i])},
-                                               bvh_k, 1)
+    times, answers, cpu = _time_interleaved(peers, k, rounds)
+    bvh_times, bvh_answers, bvh_cpu = _time_interleaved(
+        {"BVH brute (coal)": lambda i: bvh.check_brute(Q[i])}, bvh_k, 1)
     times.update(bvh_times)
-    stats = {name: summarize(t) for name, t in times.items()}
+    cpu.update(bvh_cpu)
+    stats = {name: summarize(t) | {"cpu_us": 1e6 * cpu[name]} for name, t in times.items()}
     ref = answers["hull + broad phase (cutoff ∞)"]
     brute = answers["hull brute"]
     max_dev = max(float(np.max(np.abs(a.per_link - b.per_link))) for a, b in zip(ref, brute, strict=True))
@@ -317,7 +327,8 @@ def render_markdown(report: dict[str, Any]) -> str:
         "",
         "## Segment test",
         "",
-        "| obstacles | peer | min µs | p50 µs | p99 µs | mean µs | ratio p50 | agrees with psm | hit rate |",
+        "| obstacles | peer | min µs | p50 µs | p99 µs | CPU µs/call | ratio p50 | agrees with psm "
+        "| hit rate |",
         "|---:|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for case in report["segments"]:
@@ -325,7 +336,7 @@ def render_markdown(report: dict[str, Any]) -> str:
         for name, s in case["stats"].items():
             agree = case["agreement_with_psm"].get(name)
             lines.append(f"| {case['obstacles']} | {name} | {s['min_us']:.1f} | {s['p50_us']:.1f} | "
-                         f"{s['p99_us']:.1f} | {s['mean_us']:.1f} | {ratio(s['p50_us'], ref):.2f} | "
+                         f"{s['p99_us']:.1f} | {s['cpu_us']:.1f} | {ratio(s['p50_us'], ref):.2f} | "
                          f"{'—' if agree is None else f'{100 * agree:.1f} %'} | "
                          f"{100 * case['hit_rate']:.0f} % |")
     lines += [
@@ -337,14 +348,14 @@ def render_markdown(report: dict[str, Any]) -> str:
         "",
         "## Whole-arm clearance",
         "",
-        "| obstacles | method | min µs | p50 µs | p99 µs | mean µs | ratio p50 |",
+        "| obstacles | method | min µs | p50 µs | p99 µs | CPU µs/call | ratio p50 |",
         "|---:|---|---:|---:|---:|---:|---:|",
     ]
     for case in report["clearance"]:
         ref = case["stats"]["hull + broad phase (cutoff ∞)"]["p50_us"]
         for name, s in case["stats"].items():
             lines.append(f"| {case['obstacles']} | {name} | {s['min_us']:.1f} | {s['p50_us']:.1f} | "
-                         f"{s['p99_us']:.1f} | {s['mean_us']:.1f} | {ratio(s['p50_us'], ref):.2f} |")
+                         f"{s['p99_us']:.1f} | {s['cpu_us']:.1f} | {ratio(s['p50_us'], ref):.2f} |")
     lines += ["", "| obstacles | geometries | exact pairs per check (broad phase, mean) | "
               "max per-link deviation broad vs brute | mean (mesh − hull) min distance |",
               "|---:|---:|---:|---:|---:|"]
@@ -355,7 +366,7 @@ def render_markdown(report: dict[str, Any]) -> str:
     d = report["decimation"]
     lines += [
         "",
-        f"## Monitor decimation (500 Hz, 10 obstacles, mean check {d['cost_us']:.0f} µs, p99 "
+        f"## Monitor decimation (500 Hz, 10 obstacles, check CPU {d['cost_us']:.0f} µs, wall p99 "
         f"{d['cost_p99_us']:.0f} µs)",
         "",
         f"Stop margin = v N dt + v²/(2a) with v = {V_MAX_M_S} m/s, a = {A_MAX_M_S2} m/s².",
@@ -391,7 +402,7 @@ def main(argv: list[str] | None = None) -> int:
         bvh_k = 2 if args.quick else (30 if n < 100 else 8)
         clearance.append(bench_clearance(n, cl_k, cl_rounds, bvh_k))
     ten = next(c for c in clearance if c["obstacles"] == 10)["stats"]["hull + broad phase (cutoff ∞)"]
-    table = decimation_table(ten["mean_us"])
+    table = decimation_table(ten["cpu_us"])
     rec = recommend_decimation(table)
     seg100 = next(c for c in segments if c["obstacles"] == 100)["stats"]["psm"]["p50_us"]
     rec_cpu = next(r["cpu"] for r in table if r["N"] == rec)
@@ -413,7 +424,7 @@ def main(argv: list[str] | None = None) -> int:
                    "clearance_rounds": cl_rounds},
         "segments": segments,
         "clearance": clearance,
-        "decimation": {"cost_us": ten["mean_us"], "cost_p99_us": ten["p99_us"], "table": table,
+        "decimation": {"cost_us": ten["cpu_us"], "cost_p99_us": ten["p99_us"], "table": table,
                        "recommended": rec},
         "targets": targets,
     }
