@@ -215,6 +215,24 @@ class ArmClearance:
                     w_obs = np.array(self._result.getNearestPoint2())
         return self._result_from(best, best_g, best_o, w_arm, w_obs, evaluated)
 
+    def speed_bound(self, q: np.ndarray, dq: np.ndarray) -> float:
+        """Upper bound [m/s] of the speed of every point of the arm's collision geometry at joint
+        state ``q, dq (n,)`` [rad, rad/s]: per geometry ``|v_c| + |ω| r`` with ``v_c`` the velocity
+        of its bounding-sphere centre, ``ω`` its angular velocity and ``r`` its radius (a point at
+        distance ≤ r from the centre moves at ``|v_c + ω × (p − c)| ≤ |v_c| + |ω| r``)."""
+        pin.forwardKinematics(self._model, self._data, np.asarray(q, dtype=float),
+                              np.asarray(dq, dtype=float))
+        best = 0.0
+        for k, j in enumerate(self._joint.tolist()):
+            if j == 0:
+                continue  # fixed to the base
+            v = self._data.v[j]  # spatial velocity of joint j in its own frame (at its origin)
+            w = np.asarray(v.angular)
+            # The bounding-sphere centre is stored in joint j's frame.
+            vc = np.asarray(v.linear) + np.cross(w, self._local_centre[k])
+            best = max(best, float(np.linalg.norm(vc) + np.linalg.norm(w) * self._geom_radius[k]))
+        return best
+
     def check_brute(self, q: np.ndarray) -> ClearanceResult:
         """Clearance at ``q`` by every (geometry, obstacle) pair, no broad phase (the reference)."""
         self._placements(np.asarray(q, dtype=float))

@@ -42,8 +42,11 @@ def hull_vertices_world(arm: ArmClearance, robot: RobotModel, q: np.ndarray, lin
         if robot.model.frames[go.parentFrame].name != link:
             continue
         g = go.geometry
-        g.buildConvexRepresentation(False)
-        pts = np.asarray(g.convex.points())
+        if hasattr(g, "halfSide"):  # a box (the fingers): its corners
+            pts = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)]) * g.halfSide
+        else:
+            g.buildConvexRepresentation(False)
+            pts = np.asarray(g.convex.points())
         M = gd.oMg[i]
         out.append(pts @ M.rotation.T + M.translation)
     return np.vstack(out)
@@ -193,3 +196,21 @@ def test_bvh_meshes_are_never_closer_than_their_hulls(robot: RobotModel) -> None
     h, m = hull.check(q), mesh.check(q)
     outside = h.per_link > 1e-3
     assert np.all(m.per_link[outside] >= h.per_link[outside] - 1e-6)
+
+
+def test_speed_bound_covers_every_hull_vertex(arm: ArmClearance, robot: RobotModel) -> None:
+    rng = np.random.default_rng(4)
+    links = set(arm.link_names)
+    for _ in range(5):
+        q = rng.uniform(robot.limits.lower, robot.limits.upper)
+        dq = rng.uniform(-1.0, 1.0, robot.n)
+        h = 1e-6
+        fastest = 0.0
+        for link in links:
+            a = hull_vertices_world(arm, robot, q, link)
+            b = hull_vertices_world(arm, robot, q + h * dq, link)
+            fastest = max(fastest, float(np.max(np.linalg.norm(b - a, axis=1))) / h)
+        bound = arm.speed_bound(q, dq)
+        assert fastest <= bound + 1e-4
+        assert bound < 3.0 * fastest + 0.5  # a bound, but not a useless one
+    assert arm.speed_bound(robot.named_poses["ready"], np.zeros(robot.n)) == 0.0
