@@ -32,6 +32,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.peers
 	$(PY) -m benchmarks.planner
 	$(PY) -m benchmarks.feeding
+	$(PY) -m benchmarks.obstacles
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache

@@ -27,6 +27,10 @@ import pinocchio as pin
 #: Relative location of the Panda URDF inside the ``example-robot-data`` distribution.
 _PANDA_URDF = "cmeel.prefix/share/example-robot-data/robots/panda_description/urdf/panda.urdf"
 
+#: Number of directory levels from the Panda URDF up to the ``share`` directory that resolves its
+#: ``package://example-robot-data/...`` mesh paths.
+_PANDA_SHARE_UP = 5
+
 #: End-effector frame of the default robot: the Panda hand's tool centre point.
 PANDA_EE_FRAME = "panda_hand_tcp"
 
@@ -90,6 +94,9 @@ class RobotModel:
     urdf_path: str
     joint_names: tuple[str, ...]
     named_poses: dict[str, np.ndarray] = field(default_factory=dict)
+    #: The URDF's model before locking (for the collision geometry) and the locked joints' ids in it.
+    full_model: pin.Model | None = None
+    locked_joint_ids: tuple[int, ...] = ()
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -178,7 +185,34 @@ class RobotModel:
             urdf_path=str(path),
             joint_names=joint_names,
             named_poses=poses,
+            full_model=full,
+            locked_joint_ids=tuple(lock_ids),
         )
+
+    def collision_geometry(self, package_dirs: Sequence[str | Path] | None = None) -> pin.GeometryModel:
+        """The URDF's collision geometry, reduced like :attr:`model` (the locked joints' bodies are
+        attached to their parents at the locked value), so ``parentJoint``/``parentFrame`` index
+        :attr:`model`.
+
+        Args:
+            package_dirs: directories that resolve ``package://`` mesh paths; default: the
+                ``share`` directory of ``example-robot-data`` for its URDFs, else the URDF's
+                directory and its two parents.
+
+        Raises:
+            ValueError: the model was not built by :meth:`load` (no full model kept).
+        """
+        if self.full_model is None:
+            raise ValueError("collision geometry needs the full model kept by RobotModel.load")
+        path = Path(self.urdf_path)
+        if package_dirs is None:
+            package_dirs = [path.parents[i] for i in range(min(_PANDA_SHARE_UP, len(path.parents)))]
+        dirs = [str(d) for d in package_dirs]
+        full = self.full_model
+        geom = pin.buildGeomFromUrdf(full, str(path), pin.GeometryType.COLLISION, package_dirs=dirs)
+        if self.locked_joint_ids:
+            _, geom = pin.buildReducedModel(full, geom, list(self.locked_joint_ids), pin.neutral(full))
+        return geom
 
     @property
     def n(self) -> int:
