@@ -220,18 +220,16 @@ class ArmClearance:
         state ``q, dq (n,)`` [rad, rad/s]: per geometry ``|v_c| + |ω| r`` with ``v_c`` the velocity
         of its bounding-sphere centre, ``ω`` its angular velocity and ``r`` its radius (a point at
         distance ≤ r from the centre moves at ``|v_c + ω × (p − c)| ≤ |v_c| + |ω| r``)."""
-        pin.forwardKinematics(self._model, self._data, np.asarray(q, dtype=float),
-                              np.asarray(dq, dtype=float))
-        best = 0.0
-        for k, j in enumerate(self._joint.tolist()):
-            if j == 0:
-                continue  # fixed to the base
-            v = self._data.v[j]  # spatial velocity of joint j in its own frame (at its origin)
-            w = np.asarray(v.angular)
-            # The bounding-sphere centre is stored in joint j's frame.
-            vc = np.asarray(v.linear) + np.cross(w, self._local_centre[k])
-            best = max(best, float(np.linalg.norm(vc) + np.linalg.norm(w) * self._geom_radius[k]))
-        return best
+        q, dq = np.asarray(q, dtype=float), np.asarray(dq, dtype=float)
+        pin.forwardKinematics(self._model, self._data, q, dq)
+        vel = self._data.v
+        # Body twists [linear; angular] in each joint's own frame (joint 0, the base, is at rest).
+        twists = np.array([vel[j].vector for j in range(self._model.njoints)])  # (J, 6)
+        lin, ang = twists[self._joint, :3], twists[self._joint, 3:]  # per geometry (G, 3)
+        centre = lin + np.cross(ang, self._local_centre)
+        speed = np.sqrt(np.einsum("gi,gi->g", centre, centre))
+        speed += np.sqrt(np.einsum("gi,gi->g", ang, ang)) * self._geom_radius
+        return float(speed.max())
 
     def check_brute(self, q: np.ndarray) -> ClearanceResult:
         """Clearance at ``q`` by every (geometry, obstacle) pair, no broad phase (the reference)."""
