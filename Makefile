@@ -33,6 +33,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.planner
 	$(PY) -m benchmarks.feeding
 	$(PY) -m benchmarks.obstacles
+	$(PY) -m benchmarks.monitor
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache
