@@ -40,7 +40,7 @@ RESULTS = ROOT / "benchmarks" / "results"
 #: Target: the monitor's CPU at 500 Hz with 10 obstacles, % of one core.
 MONITOR_TARGET_PCT = 20.0
 
-#: Ten obstacles around the arm at its ready pose (m, base frame), 8-40 cm from its links.
+#: Ten obstacles around the arm at its ready pose (m, base frame), 6-45 cm from its links.
 OBSTACLES: tuple[str, ...] = (
     '{id = "b0", shape = "box", position_m = [0.55, 0.30, 0.15], size_m = [0.10, 0.10, 0.30]}',
     '{id = "b1", shape = "box", position_m = [0.55, -0.30, 0.15], size_m = [0.10, 0.10, 0.30]}',
@@ -52,7 +52,7 @@ OBSTACLES: tuple[str, ...] = (
     '{id = "c0", shape = "cylinder", position_m = [0.10, 0.40, 0.30], size_m = [0.08, 0, 0.60]}',
     '{id = "c1", shape = "cylinder", position_m = [0.10, -0.40, 0.30], size_m = [0.08, 0, 0.60]}',
     '{id = "c2", shape = "cylinder", position_m = [0.60, 0.00, 0.02], size_m = [0.30, 0, 0.04]}',
-    '{id = "b3", shape = "box", position_m = [-0.25, 0.00, 0.40], size_m = [0.10, 0.60, 0.80]}',
+    '{id = "b3", shape = "box", position_m = [-0.45, 0.00, 0.40], size_m = [0.10, 0.60, 0.80]}',
 )
 
 CASES: dict[str, dict[str, Any]] = {

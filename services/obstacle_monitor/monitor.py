@@ -200,12 +200,13 @@ class ObstacleMonitor:
         tick: int,
         x: NDArray[np.float64],
         v: NDArray[np.float64],
-        q: NDArray[np.float64],
-        dq: NDArray[np.float64],
+        q: Any,
+        dq: Any,
         dt_s: float,
     ) -> Prediction:
         """The prediction for the arm state at ``stamp_ns`` (tick ``tick``): end effector ``x, v
-        (3,)`` [m, m/s], joints ``q, dq (n,)`` [rad, rad/s], control period ``dt_s`` [s]."""
+        (3,)`` [m, m/s], joints ``q, dq (n,)`` [rad, rad/s] (any sequence: converted only when the
+        clearance is computed), control period ``dt_s`` [s]."""
         if self._epoch_ns is None:
             self._epoch_ns = stamp_ns
         self.now_ns = stamp_ns
@@ -233,8 +234,9 @@ class ObstacleMonitor:
                     clr.set_obstacles(self.obstacles_at(stamp_ns))
                     self._clearance_dirty = False
                 t0 = time.perf_counter_ns()
-                res = clr.check(q)
-                bound = clr.speed_bound(q, dq)
+                q_arr, dq_arr = np.asarray(q, dtype=float), np.asarray(dq, dtype=float)
+                res = clr.check(q_arr)
+                bound = clr.speed_bound(q_arr, dq_arr)
                 self.clearance_us.append((time.perf_counter_ns() - t0) * 1e-3)
                 if len(self.clearance_us) > 100_000:
                     del self.clearance_us[:50_000]

@@ -33,6 +33,7 @@ brakes).
 
 from __future__ import annotations
 
+import math
 import threading
 from typing import Any
 
@@ -216,16 +217,15 @@ class ObstacleMonitorService(ServiceApp):
         """The prediction message for one arm state (under the lock), or None when the state is
         rejected."""
         p, v = st.ee_position, st.ee_linear_velocity
-        x = np.array([p.x, p.y, p.z])
-        vel = np.array([v.x, v.y, v.z])
-        q = np.asarray(st.q, dtype=float)
-        dq = np.asarray(st.dq, dtype=float)
-        finite = np.isfinite(x).all() and np.isfinite(vel).all()
+        x = np.array([p.x, p.y, p.z, v.x, v.y, v.z])
         dt = float(st.dt_s)
-        if not (finite and np.isfinite(q).all() and np.isfinite(dq).all() and dt > 0.0):
+        # sum() of the joints is NaN/inf when one is: the joints are checked without an array.
+        finite = math.isfinite(float(x.sum())) and math.isfinite(sum(st.q) + sum(st.dq))
+        if not (finite and dt > 0.0):
             self.svc.record_rejection(self._state_key, f"tick {st.tick}: non-finite state or dt_s")
             return None
-        pred = self.monitor.check(int(st.stamp_ns), int(st.tick), x, vel, q, dq, dt)
+        # The joints (repeated fields) become arrays only on the ticks the clearance is computed.
+        pred = self.monitor.check(int(st.stamp_ns), int(st.tick), x[:3], x[3:], st.q, st.dq, dt)
         self._seq += 1
         return prediction_message(pred, self._seq, self._pred)
 
