@@ -103,7 +103,8 @@ def test_the_feeding_task_completes_through_the_stack(tmp_path: Path, start_pose
     # Every command answers a recorded state, and (lockstep) every state but the planner-less
     # ones at the start and the end is answered.
     assert commands and set(commands) <= states
-    assert len(set(commands)) >= 0.95 * len(states)
+    served = {t for t in states if t <= max(commands)}  # the planner-less tail excluded
+    assert len(set(commands)) >= 0.95 * len(served)
     kinds = [TaskEvent.Kind.Name(e.kind) for e in events]
     assert kinds.count("STEP_COMPLETED") == 5 and kinds[-1] == "COMPLETED", kinds[-10:]
     assert "GRIPPER" in kinds
