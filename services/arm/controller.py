@@ -48,7 +48,13 @@ class ValidationLimits(Section):
     )
 
 
-def _vector(value: object, size: int, name: str) -> np.ndarray:
+def _vector_sq(value: object, size: int, name: str) -> tuple[np.ndarray, float]:
+    """``value`` as a finite float array ``(size,)`` and its squared norm ``v @ v``.
+
+    The squared norm doubles as the finiteness check (one numpy call per vector on the arm's
+    per-tick path): it is finite iff every element is, unless the squares overflow, in which
+    case the elements are checked one by one.
+    """
     if isinstance(value, np.ndarray) and value.dtype == np.float64:
         arr = value
     else:
@@ -58,13 +64,14 @@ def _vector(value: object, size: int, name: str) -> np.ndarray:
             raise CommandRejectedError("malformed", f"{name} is not numeric") from exc
     if arr.shape != (size,):
         raise CommandRejectedError("malformed", f"{name} must have {size} values, got {arr.size}")
-    if not np.isfinite(arr).all():
+    sq = float(arr @ arr)
+    if not math.isfinite(sq) and not np.isfinite(arr).all():
         raise CommandRejectedError("non_finite", f"{name} contains NaN or inf")
-    return arr
+    return arr, sq
 
 
-def _norm(v: np.ndarray) -> float:
-    return math.sqrt(float(v @ v))
+def _vector(value: object, size: int, name: str) -> np.ndarray:
+    return _vector_sq(value, size, name)[0]
 
 
 def validate_command(cmd: Command, n: int, bounds: ValidationLimits) -> Command:
@@ -82,7 +89,7 @@ def validate_command(cmd: Command, n: int, bounds: ValidationLimits) -> Command:
         if cmd.joint_acceleration is None:
             raise CommandRejectedError("malformed", "joint command without joint_acceleration")
         ddq = _vector(cmd.joint_acceleration, n, "joint_acceleration")
-        if np.max(np.abs(ddq)) > bounds.max_joint_acceleration:
+        if np.abs(ddq).max() > bounds.max_joint_acceleration:
             raise CommandRejectedError(
                 "out_of_range",
                 f"joint acceleration above {bounds.max_joint_acceleration} rad/s²",
@@ -92,15 +99,15 @@ def validate_command(cmd: Command, n: int, bounds: ValidationLimits) -> Command:
         raise CommandRejectedError("malformed", f"unknown command mode {cmd.mode!r}")
     if cmd.linear_acceleration is None:
         raise CommandRejectedError("malformed", "Cartesian command without linear_acceleration")
-    acc = _vector(cmd.linear_acceleration, 3, "linear_acceleration")
-    if _norm(acc) > bounds.max_linear_acceleration:
+    acc, sq = _vector_sq(cmd.linear_acceleration, 3, "linear_acceleration")
+    if math.sqrt(sq) > bounds.max_linear_acceleration:
         raise CommandRejectedError(
             "out_of_range", f"linear acceleration above {bounds.max_linear_acceleration} m/s²"
         )
     quat = None
     if cmd.orientation_xyzw is not None:
-        quat = _vector(cmd.orientation_xyzw, 4, "orientation")
-        norm = _norm(quat)
+        quat, sq = _vector_sq(cmd.orientation_xyzw, 4, "orientation")
+        norm = math.sqrt(sq)
         if abs(norm - 1.0) > bounds.quat_norm_tolerance:
             raise CommandRejectedError("out_of_range", f"orientation quaternion norm {norm:.3g} != 1")
         quat = quat / norm
@@ -108,8 +115,8 @@ def validate_command(cmd: Command, n: int, bounds: ValidationLimits) -> Command:
             quat = -quat
     omega = None
     if cmd.angular_velocity is not None:
-        omega = _vector(cmd.angular_velocity, 3, "angular_velocity")
-        if _norm(omega) > bounds.max_angular_velocity:
+        omega, sq = _vector_sq(cmd.angular_velocity, 3, "angular_velocity")
+        if math.sqrt(sq) > bounds.max_angular_velocity:
             raise CommandRejectedError(
                 "out_of_range", f"angular velocity above {bounds.max_angular_velocity} rad/s"
             )
@@ -177,14 +184,18 @@ class AccelBoundsKernel:
         self._D = np.empty((2, n))
         self._S = np.empty((2, n))
         self._V = np.empty((2, n))
+        self._H = np.empty((2, n))
+        # Row views, made once (indexing a row builds a new view object every time).
+        self._D0, self._D1 = self._D[0], self._D[1]
+        self._H0, self._H1 = self._H[0], self._H[1]
 
     def __call__(self, q: np.ndarray, dq: np.ndarray) -> AccelBounds:
         """The bounds for state ``q`` (n,) rad, ``dq`` (n,) rad/s (see :func:`joint_accel_bounds`)."""
         lim, dt = self.limits, self.dt
-        D, S, V = self._D, self._S, self._V
+        D, S, V, H = self._D, self._S, self._V, self._H
         # Row 0: distance to the upper limit, row 1: distance to the lower limit (rad).
-        np.subtract(lim.upper, q, out=D[0])
-        np.subtract(q, lim.lower, out=D[1])
+        np.subtract(lim.upper, q, out=self._D0)
+        np.subtract(q, lim.lower, out=self._D1)
         np.maximum(D, 0.0, out=D)
         np.multiply(D, self._c1, out=S)
         S += self._c0
@@ -193,10 +204,10 @@ class AccelBoundsKernel:
         S *= self._brake  # the stop speeds (rad/s)
         np.minimum(self._vmax, S, out=V)
         V *= self._sign  # row 1 becomes the lowest allowed next velocity
-        H = V - dq
+        np.subtract(V, dq, out=H)
         H /= dt
-        hi = np.minimum(self._amax, H[0])
-        lo = np.maximum(self._neg_amax, H[1])
+        hi = np.minimum(self._amax, self._H0)
+        lo = np.maximum(self._neg_amax, self._H1)
         bad = lo > hi
         if bad.any():
             fix = np.clip((np.clip(dq, V[1], V[0]) - dq) / dt, self._neg_amax, self._amax)
@@ -238,7 +249,7 @@ def apply_accel_bounds(
     """Scale ``ddq`` uniformly into the acceleration limits (keeps the Cartesian direction),
     then clip each joint into ``bounds``; fills ``report`` with the active clamps."""
     out = np.asarray(ddq, dtype=float)
-    ratio = float(np.max(np.abs(out) / acceleration_limits))
+    ratio = float((np.abs(out) / acceleration_limits).max())
     acc_clamped = ratio > 1.0
     if acc_clamped:
         out = out / ratio
@@ -247,7 +258,7 @@ def apply_accel_bounds(
     if report is not None:
         report.acceleration = acc_clamped
         report.velocity = report.position = False
-    if below.any() or above.any():
+    if (below | above).any():
         if report is not None:
             vel = (below & bounds.lo_is_velocity) | (above & bounds.hi_is_velocity)
             report.velocity = bool(vel.any())
@@ -324,7 +335,10 @@ class IKController:
             return self._eye6, 0.0
         d = L.diagonal()
         fro2 = 2.0 * float((L * L).sum()) - float(d @ d)
-        return L + L.T - np.diag(d), 1.0 / math.sqrt(fro2)
+        # L + Lᵀ − diag(d): the diagonal 2d − d is exactly d, so it is written instead.
+        K = L + L.T
+        K.flat[:: K.shape[0] + 1] = d
+        return K, 1.0 / math.sqrt(fro2)
 
     def prepare(
         self,

@@ -19,13 +19,15 @@ Clock modes (the stack's ``clock``; ``docs/architecture.md``, *Time and the cont
   it (counted in ``lockstep_timeouts``) and ticks at wall-clock pace until commands return, so
   the watchdog brakes the arm promptly when the planner stops.
 
-Threads: in ``realtime`` a command is decoded, validated and — when it answers the state just
-published — stepped on Zenoh's receive thread, under the arm's lock, as soon as it arrives; the
-loop thread only sleeps until each tick's schedule, steps itself when no answer came in time
-(held command or brake), and publishes. One wake-up per tick on the loop thread and none for the
-hand-off is what keeps a 500 Hz Python loop cheap. In ``lockstep`` commands are queued as raw
-bytes and handled on the loop thread. Either way the simulation is only ever touched by one
-thread at a time.
+Threads: a command is decoded, validated and — when it answers the state just published —
+stepped on Zenoh's receive thread, under the arm's lock, as soon as it arrives. In ``realtime``
+the loop thread only sleeps until each tick's schedule, steps itself when no answer came in time
+(held command or brake), and publishes: one wake-up per tick on the loop thread and none for the
+hand-off is what keeps a 500 Hz Python loop cheap. In ``lockstep`` the receive thread also
+publishes the next state at once, so a tick costs no thread hand-off at all; the loop thread
+only wakes for the timeouts (no planner yet, a planner that stopped answering) and the end.
+Before and after the loop commands are queued as raw bytes and handled on the loop thread.
+Either way the simulation is only ever touched by one thread at a time.
 """
 
 from __future__ import annotations
@@ -164,13 +166,23 @@ class ArmService(ServiceApp):
         self.dt_ns = section.dt_ns
         self.stats = LoopStats()
         self._inbox = command_inbox()
-        #: Realtime: guards the simulation between the loop thread and Zenoh's receive thread.
+        #: Guards the simulation between the loop thread and Zenoh's receive thread.
         self._lock = threading.Lock()
-        #: Realtime: commands are handled (and stepped) on Zenoh's thread while this is set.
+        #: Commands are handled (and stepped) on Zenoh's thread while this is set.
         self._direct = False
+        self._lockstep = config.clock == "lockstep"
+        #: Lockstep: ``time.monotonic()`` of the last state published (the timeouts count from it).
+        self._progress_s = 0.0
+        #: Lockstep: an answer has arrived (before it, state 0 is re-offered, sim time frozen).
+        self._started = False
+        #: Lockstep: the last timeout found no answer (the arm ticks at wall-clock pace).
+        self._starved = False
+        #: Lockstep: set by the receive thread when the last tick (``max_ticks``) is published.
+        self._finished = threading.Event()
         self._published_tick = -1  # tick of the last published state
-        self._pub_ns = np.zeros(_PUB_RING, dtype=np.int64)
-        self._pub_tick = np.full(_PUB_RING, -1, dtype=np.int64)
+        # Plain lists: one element is read and written per tick (cheaper than numpy scalars).
+        self._pub_ns = [0] * _PUB_RING
+        self._pub_tick = [-1] * _PUB_RING
         self._answered = -1  # highest tick for which an answer has been seen
         self._payload = b""  # the encoded current state (see _encode_current)
         self._payload_tick = -1
@@ -221,7 +233,12 @@ class ArmService(ServiceApp):
                 return
             tick = self._handle(item)
             sim = self.sim
-            if tick == sim.tick == self._published_tick and self._may_step():
+            if self._lockstep:
+                if tick >= sim.tick == self._published_tick:
+                    self._started = True
+                    self._starved = False
+                    self._lockstep_step()
+            elif tick == sim.tick == self._published_tick and self._may_step():
                 self._advance(1)
 
     def _on_liveliness(self, name: str, alive: bool) -> None:
@@ -267,7 +284,7 @@ class ArmService(ServiceApp):
         if tick > self._answered:
             slot = tick % _PUB_RING
             if self._pub_tick[slot] == tick:
-                lat = t_recv - int(self._pub_ns[slot])
+                lat = t_recv - self._pub_ns[slot]
                 self.stats.add_latency(lat)
                 self.stats.answered_ticks += 1
                 if lat > self.dt_ns and self.config.clock == "realtime":
@@ -313,8 +330,20 @@ class ArmService(ServiceApp):
         in flight; returns the ``perf_counter_ns`` time of the state's ``put``."""
         self._encode_current()
         now = self._put_current()
+        self._published_tick = self.sim.tick
+        self._progress_s = time.monotonic()
         self.sim.prepare()
+        if not self._may_step():
+            self._finished.set()
         return now
+
+    def _lockstep_step(self) -> None:
+        """Lockstep, under the lock: step once with the held command (or brake) and publish the
+        new state, unless ``max_ticks`` is reached."""
+        if self._may_step():
+            self.sim.step()
+            self.stats.ticks += 1
+            self._publish_state()
 
     def _may_step(self) -> bool:
         """False once ``max_ticks`` is reached (the loop then publishes that state and stops)."""
@@ -448,47 +477,43 @@ class ArmService(ServiceApp):
         return t0, anchor_tick, k
 
     def run_lockstep(self) -> None:
-        """Lockstep loop: tick k+1 follows as soon as the command answering tick k arrived."""
-        sim, stats = self.sim, self.stats
+        """Lockstep loop: tick k+1 follows as soon as the command answering tick k arrived.
+
+        The step, the publication of state k+1 and the command-independent work for the step
+        after it run on Zenoh's receive thread when the answer arrives (:meth:`_on_sample`).
+        This thread only waits: for ``lockstep_timeout_s`` without a published state (before
+        the first answer it re-offers state 0; afterwards it counts a lockstep timeout and steps
+        without an answer, then every ``dt`` until answers return), for ``max_ticks`` and for
+        the stop.
+        """
         timeout_s = self.config.arm.lockstep_timeout_s
         dt_s = self.dt_ns * 1e-9
-        get = self._inbox.get
         clock = time.monotonic
         self._wait_for_subscribers(timeout_s)
-        started = False
-        starved = False
-        while True:
+        with self._lock:
+            self._drain()
+            # Direct before the first state goes out: its answer may arrive at once.
+            self._direct = True
             self._publish_state()
-            if self._done():
-                break
-            k = sim.tick
-            answered = self._answered >= k
-            deadline = clock() + (dt_s if starved else timeout_s)
-            while not answered:
-                remaining = deadline - clock()
-                if remaining <= 0:
-                    if not started:  # no planner yet: re-offer state 0, sim time frozen
-                        if self.svc.stop_event.is_set():
-                            return
-                        self._publish_state()
-                        deadline = clock() + timeout_s
-                        continue
-                    stats.lockstep_timeouts += 1
-                    starved = True
-                    break
-                try:
-                    item = get(timeout=min(remaining, 0.1))
-                except queue.Empty:
-                    if self.svc.stop_event.is_set():
-                        return
+        try:
+            while not self._done() and not self._finished.is_set():
+                wait_s = (dt_s if self._starved else timeout_s) - (clock() - self._progress_s)
+                if wait_s > 0:
+                    # Short slices: the stop (a signal) is seen at once.
+                    self._finished.wait(min(wait_s, 0.1))
                     continue
-                if self._handle(item) >= k:
-                    answered = True
-            if answered:
-                started = True
-                starved = False
-            sim.step()
-            stats.ticks += 1
+                with self._lock:
+                    if clock() - self._progress_s < (dt_s if self._starved else timeout_s):
+                        continue  # a state was published while this thread took the lock
+                    if not self._started:  # no planner yet: re-offer state 0, sim time frozen
+                        self._publish_state()
+                        continue
+                    self.stats.lockstep_timeouts += 1
+                    self._starved = True
+                    self._lockstep_step()
+        finally:
+            with self._lock:
+                self._direct = False
 
     def run(self) -> dict[str, Any]:
         """Run on the bus until stopped (signal, ``max_ticks``); returns the stats summary."""

@@ -104,6 +104,8 @@ class ArmSim:
         self.config = config or ArmSimConfig()
         cfg = self.config
         self.dt = cfg.dt_ns * 1e-9
+        self._dt_ns = cfg.dt_ns  # the config's derived values, read every tick
+        self._watchdog_ns = cfg.watchdog_timeout_ns
         self.q = robot.resolve_pose(cfg.start_pose)
         self.dq = np.zeros(robot.n)
         self.ddq = np.zeros(robot.n)
@@ -120,7 +122,7 @@ class ArmSim:
         self._min_command_tick = 0
         self._hold_rotation: np.ndarray | None = None
         self._ref_rotation: np.ndarray | None = None
-        self._ref_quat: np.ndarray | None = None
+        self._ref_quat: list[float] | None = None  # the quaternion _ref_rotation was made from
         self._snapshot: ArmSnapshot | None = None
         self._bounds: AccelBounds | None = None
         #: (J (6, n), drift (6,), twist (6,), rotation (3, 3)) of the current state (_refresh).
@@ -135,7 +137,7 @@ class ArmSim:
     @property
     def time_ns(self) -> int:
         """Sim time of the current tick, ns: ``time_origin_ns + tick * dt_ns``."""
-        return self.time_origin_ns + self.tick * self.config.dt_ns
+        return self.time_origin_ns + self.tick * self._dt_ns
 
     def set_time_origin(self, origin_ns: int) -> None:
         """Set the sim time of tick 0 (ns); the current snapshot is re-stamped."""
@@ -156,7 +158,8 @@ class ArmSim:
         J = robot.jacobian()
         drift = robot.drift()
         twist = robot.ee_velocity()
-        acc = J @ self.ddq + drift
+        acc = J @ self.ddq
+        acc += drift
         M = robot.ee_placement()
         xyzquat = pin.SE3ToXYZQUAT(M)
         quat = xyzquat[3:]
@@ -235,14 +238,14 @@ class ArmSim:
     def command_fresh(self) -> bool:
         """True if the held command is within the watchdog timeout at the current tick."""
         c = self._command
-        return c is not None and (self.tick - c.tick) * self.config.dt_ns <= (self.config.watchdog_timeout_ns)
+        return c is not None and (self.tick - c.tick) * self._dt_ns <= self._watchdog_ns
 
     # ------------------------------------------------------------------ stepping
     def _brake_accel(self) -> np.ndarray:
         """Joint deceleration stopping every joint along the current joint-space direction."""
         amax = self.robot.limits.acceleration
         ddq = -self.dq / self.dt
-        ratio = float(np.max(np.abs(ddq) / amax))
+        ratio = float((np.abs(ddq) / amax).max())
         return ddq / ratio if ratio > 1.0 else ddq
 
     def compute_accel(self) -> np.ndarray:
@@ -266,9 +269,10 @@ class ArmSim:
                 self._hold_rotation = self.snapshot().ee.rotation
             R_ref = self._hold_rotation
         else:
-            if self._ref_quat is None or not np.array_equal(self._ref_quat, cmd.orientation_xyzw):
-                self._ref_quat = cmd.orientation_xyzw
-                self._ref_rotation = matrix_from_quat_xyzw(cmd.orientation_xyzw)
+            quat = cmd.orientation_xyzw.tolist()
+            if quat != self._ref_quat:
+                self._ref_quat = quat
+                self._ref_rotation = matrix_from_quat_xyzw(quat)
             R_ref = self._ref_rotation
         assert R_ref is not None
         self.prepare()

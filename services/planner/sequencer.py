@@ -500,7 +500,7 @@ class TaskRunner:
             self._resume(spec, now_ns, x, quat)
         ctrl = self._ctrl
         assert ctrl is not None
-        if self._goal is None or not np.array_equal(goal, self._goal):
+        if self._goal is None or not (goal == self._goal).all():
             ctrl.set_goal(goal)
             self._goal = goal
             if (
@@ -511,7 +511,7 @@ class TaskRunner:
                 self._event("GOAL_CHANGED", f"{spec.goal} at {np.round(goal, 3).tolist()}")
         self._goal_velocity = goal_vel
         acc = ctrl.step(x, v, dt)
-        seg = tuple(int(s) for s in ctrl.segment)
+        seg = tuple(ctrl.segment.tolist())
         if seg != self._segments:
             changed = [
                 f"{'xyz'[d]}:{a}->{b}"

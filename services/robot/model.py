@@ -189,6 +189,9 @@ class RobotModel:
             locked_joint_ids=tuple(lock_ids),
         )
 
+    def __post_init__(self) -> None:
+        self._zero_ddq = np.zeros(self.model.nv)  # the zero joint acceleration of update()
+
     def collision_geometry(self, package_dirs: Sequence[str | Path] | None = None) -> pin.GeometryModel:
         """The URDF's collision geometry, reduced like :attr:`model` (the locked joints' bodies are
         attached to their parents at the locked value), so ``parentJoint``/``parentFrame`` index
@@ -238,8 +241,10 @@ class RobotModel:
     def update(self, q: np.ndarray, dq: np.ndarray) -> None:
         """Compute placements, Jacobians and velocities for state ``(q, dq)`` into ``data``
         (with zero joint acceleration, so frame accelerations are the drift term J̇q̇)."""
-        pin.computeJointJacobians(self.model, self.data, q)
-        pin.forwardKinematics(self.model, self.data, q, dq, np.zeros(self.n))
+        # One kinematics pass (placements, velocities, drift accelerations), then the joint
+        # Jacobians from those placements (the q-less overload does not redo the pass).
+        pin.forwardKinematics(self.model, self.data, q, dq, self._zero_ddq)
+        pin.computeJointJacobians(self.model, self.data)
         pin.updateFramePlacement(self.model, self.data, self.ee_frame_id)
 
     def jacobian(self) -> np.ndarray:

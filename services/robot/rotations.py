@@ -1,4 +1,5 @@
-"""Quaternion ↔ rotation-matrix conversions on :class:`scipy.spatial.transform.Rotation`.
+"""Quaternion ↔ rotation-matrix conversions (matrix → quaternion on
+:class:`scipy.spatial.transform.Rotation`, quaternion → matrix in closed form).
 
 Quaternions are ``(x, y, z, w)`` (scalar last, scipy's order) and returned with ``w >= 0``.
 Kept free of Pinocchio so the protocol helpers (:mod:`services.robot.protocol`) import quickly.
@@ -6,6 +7,7 @@ Kept free of Pinocchio so the protocol helpers (:mod:`services.robot.protocol`) 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -28,14 +30,30 @@ def quat_xyzw_from_matrix(R: np.ndarray) -> np.ndarray:
 def matrix_from_quat_xyzw(quat: Sequence[float] | np.ndarray) -> np.ndarray:
     """Rotation matrix ``(3, 3)`` of a quaternion ``(x, y, z, w)`` ``(4,)`` (normalised first).
 
+    Plain float arithmetic (no numpy on the four components: this runs every control tick in
+    the arm): the quaternion is normalised twice and expanded with the same operations, in the
+    same order, as ``Rotation.from_quat(q / |q|).as_matrix()``, so the result is identical to
+    scipy's bit for bit.
+
     Raises:
         ValueError: the quaternion has zero or non-finite norm.
     """
-    q = np.asarray(quat, dtype=float)
-    n = float(np.sqrt(q @ q))
-    if not np.isfinite(n) or n == 0.0:
+    x, y, z, w = (float(c) for c in quat)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    if not math.isfinite(n) or n == 0.0:
         raise ValueError("quaternion has zero or non-finite norm")
-    return Rotation.from_quat(q / n).as_matrix()
+    x, y, z, w = x / n, y / n, z / n, w / n
+    n = math.sqrt(x * x + y * y + z * z + w * w)  # scipy's own normalisation
+    x, y, z, w = x / n, y / n, z / n, w / n
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return np.array(
+        [
+            [x2 - y2 - z2 + w2, 2.0 * (xy - zw), 2.0 * (xz + yw)],
+            [2.0 * (xy + zw), -x2 + y2 - z2 + w2, 2.0 * (yz - xw)],
+            [2.0 * (xz - yw), 2.0 * (yz + xw), -x2 - y2 + z2 + w2],
+        ]
+    )
 
 
 __all__ = ["matrix_from_quat_xyzw", "quat_xyzw_from_matrix"]

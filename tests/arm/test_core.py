@@ -238,6 +238,13 @@ def test_starts_braked_without_commands(robot: RobotModel) -> None:
         (Command(0, CommandMode.CARTESIAN, np.array([0.0, 0.0])), "malformed"),
         (Command(0, CommandMode.CARTESIAN, None), "malformed"),
         (Command(0, CommandMode.CARTESIAN, np.array([100.0, 0, 0])), "out_of_range"),
+        # Squares that overflow: finite values, so out of range (not non-finite).
+        (Command(0, CommandMode.CARTESIAN, np.array([1e200, 0, 0])), "out_of_range"),
+        (Command(0, CommandMode.CARTESIAN, np.array([1e200, np.nan, 0])), "non_finite"),
+        (
+            Command(0, CommandMode.CARTESIAN, np.zeros(3), np.array([0.0, 0.0, np.inf, 1.0])),
+            "non_finite",
+        ),
         (
             Command(0, CommandMode.CARTESIAN, np.zeros(3), np.array([0.0, 0.0, 0.0, 0.0])),
             "out_of_range",
