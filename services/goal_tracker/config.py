@@ -29,6 +29,7 @@ from pydantic import Field
 
 from services.bus.config import ConfigError, Section, ServiceConfig, Vec3
 from services.goal_tracker.detectors import HaarParams, PipelineParams, YuNetParams
+from services.goal_tracker.geometry import MeasurementNoise
 from services.goal_tracker.kalman import KalmanParams
 
 if TYPE_CHECKING:
@@ -154,19 +155,11 @@ class DetectorSection(PipelineParams, HaarParams, YuNetParams):
             raise ConfigError("model_path", "detector.kind = 'yunet' needs a YuNet ONNX model file")
 
 
-class FilterSection(KalmanParams):
-    """``[goal_tracker.filter]``: Kalman filter, outlier gate, lost timeout, target selection."""
+class FilterSection(KalmanParams, MeasurementNoise):
+    """``[goal_tracker.filter]``: Kalman filter, outlier gate, lost timeout, measurement noise,
+    target selection."""
 
-    pixel_sigma: Vec3 = Field(
-        default_factory=lambda: [1.5, 1.5, 2.0],
-        description="1-sigma noise of box centre u, v and width w, px",
-    )
     min_hits: int = Field(2, ge=1, description="frames a face must be seen before it can become the target")
-
-    def check(self) -> None:
-        """Noise levels are positive."""
-        if any(v <= 0 for v in self.pixel_sigma):
-            raise ConfigError("pixel_sigma", f"expected numbers > 0, got {self.pixel_sigma}")
 
 
 class WorkspaceSection(Section):
@@ -274,7 +267,7 @@ def build_geometry(sec: GoalTrackerSection) -> FaceGeometry:
     intr = Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height)
     mount = Transform.from_rpy(sec.mount.translation_m, sec.mount.rpy_deg)
     return FaceGeometry(
-        intr, sec.face.width_m, mount, tuple(sec.face.offset_m), tuple(sec.filter.pixel_sigma)
+        intr, sec.face.width_m, mount, tuple(sec.face.offset_m), sec.filter.project(MeasurementNoise)
     )
 
 

@@ -174,7 +174,7 @@ class PipelineParams(Section):
         320, ge=64, description="full detections run on the frame resized to this width [px]"
     )
     full_every: int = Field(
-        10, ge=1, description="full detection at least every N frames (ROI tracking between)"
+        30, ge=1, description="full detection at least every N frames (ROI tracking between)"
     )
     min_face_px: int = Field(
         40, ge=8, description="smallest face width searched by a full detection [px]"
@@ -190,6 +190,16 @@ class PipelineParams(Section):
     max_refine: int = Field(
         3, ge=0, description="how many faces of a full detection get an ROI refinement"
     )
+    roi_origin_step: int = Field(
+        8, ge=1, le=64,
+        description="the ROI's origin and side lie on a grid of this many ROI pixels, its offset "
+        "cycled through all values over this many ROI detections [px]",
+    )
+    roi_size_step: float = Field(
+        1.1, gt=1.0, le=2.0,
+        description="the ROI and its face-size window follow the predicted face width in "
+        "geometric steps of this factor (never continuously: no prediction feedback)",
+    )
 
     @field_validator("roi_size_range")
     @classmethod
@@ -198,6 +208,11 @@ class PipelineParams(Section):
         if not 0.3 <= lo < 1.0 < hi <= 3.0:
             raise ValueError(f"must satisfy 0.3 <= min < 1 < max <= 3, got {lo}, {hi}")
         return value
+
+
+def _snap_geometric(value: float, step: float) -> float:
+    """``value`` (> 0) rounded to the nearest power of ``step`` (> 1): a grid fixed in log space."""
+    return float(step ** round(math.log(value) / math.log(step)))
 
 
 @dataclass
@@ -215,6 +230,7 @@ class DetectionPipeline:
         self.detector = detector
         self.params = params or PipelineParams()
         self._since_full = 1 << 30
+        self._roi_calls = 0  #: ROI detections run so far: the index of the grid offset
         self.full_count = 0
         self.roi_count = 0
 
@@ -240,22 +256,43 @@ class DetectionPipeline:
         p = self.params
         h, w = frame.shape[:2]
         cu, cv_ = hint.centre
-        side = max(hint.w, hint.h) * p.roi_margin
-        x0, y0 = max(0, int(cu - side / 2)), max(0, int(cv_ - side / 2))
-        x1, y1 = min(w, math.ceil(cu + side / 2)), min(h, math.ceil(cv_ + side / 2))
-        if x1 - x0 < 24 or y1 - y0 < 24:
-            return None
-        crop = frame[y0:y1, x0:x1]
+        # The ROI's size and its face-size window come from the hint's width snapped to a
+        # geometric grid (steps of roi_size_step), not from the hint itself: Haar's box size
+        # depends on the searched size window (which scales are grouped), so a window that
+        # followed the prediction continuously would pull the measured size towards the
+        # prediction — a lagging prediction would make the measurement lag too.
+        ref = _snap_geometric(max(hint.w, hint.h, 1.0), p.roi_size_step)
         # Large faces are searched at a power-of-two reduced resolution. The scale must not
         # follow the hint continuously: the detector's box sizes are quantised on its scale grid,
         # and a grid that moves with the prediction would feed the prediction back into the
         # measurement.
-        scale = 0.5 ** max(0, math.ceil(math.log2(max(hint.w, 1.0) / p.roi_max_face_px)))
+        scale = 0.5 ** max(0, math.ceil(math.log2(ref / p.roi_max_face_px)))
+        # For the same reason the window's side and origin sit on a grid of roi_origin_step
+        # ROI pixels: a still face gets the same crop every frame (only the sensor noise
+        # differs), instead of one that shifts by a pixel, and changes the downsampling phase and
+        # hence the box size, whenever the prediction crosses a pixel boundary.
+        # The grid itself is shifted from one ROI to the next through all roi_origin_step
+        # offsets (a fixed 1-D lattice of (3k, 5k) mod step in ROI pixels, frame counter k): the
+        # box size Haar finds depends on where the face sits on the crop's pixel grid, a bias that
+        # a fixed grid would make constant for a still face. Cycling the offsets turns it into a
+        # zero-mean periodic error that the filter averages out (period roi_origin_step frames).
+        grid = p.roi_origin_step / scale
+        k = self._roi_calls
+        self._roi_calls += 1
+        off_x = (3 * k) % p.roi_origin_step / scale
+        off_y = (5 * k) % p.roi_origin_step / scale
+        side = math.ceil(ref * p.roi_margin / grid) * grid
+        x0 = max(0, int(math.floor((cu - side / 2 - off_x) / grid) * grid + off_x))
+        y0 = max(0, int(math.floor((cv_ - side / 2 - off_y) / grid) * grid + off_y))
+        x1, y1 = min(w, int(x0 + side)), min(h, int(y0 + side))
+        if x1 - x0 < 24 or y1 - y0 < 24:
+            return None
+        crop = frame[y0:y1, x0:x1]
         size = (max(24, round((x1 - x0) * scale)), max(24, round((y1 - y0) * scale)))
         if scale < 1.0:
             crop = cv2.resize(crop, size, interpolation=cv2.INTER_AREA)
         scale_x, scale_y = size[0] / (x1 - x0), size[1] / (y1 - y0)
-        expected = hint.w * scale
+        expected = ref * scale
         lo, hi = p.roi_size_range
         dets = self.detector.detect(crop, int(expected * lo), math.ceil(expected * hi) + 1, fine=True)
         if not dets:

@@ -1,9 +1,22 @@
 """Constant-velocity Kalman filter for a 3-D point, with outlier gating and a lost timeout.
 
 State ``x = [p (3), v (3)]`` in metres and metres/second; the measurement is the position only.
-Process noise is the continuous white-acceleration model with spectral density ``q`` (m²/s³):
+Process noise is the continuous white-acceleration model, per axis ``i`` with spectral density
+``q_i`` (m²/s³):
 
-    Q(dt) = q · [[dt³/3 I, dt²/2 I], [dt²/2 I, dt I]]
+    Q_i(dt) = q_i · [[dt³/3, dt²/2], [dt²/2, dt]]        (position i, velocity i)
+
+``q_i`` adapts to how the head moves (manoeuvre adaptation on the innovations): every measurement
+updates an exponential average ``ε_i`` (time constant ``adapt_time_constant_s``) of
+the normalised squared innovation ``y_i² / S_ii`` (expectation 1 when the model fits; clipped at
+the gate), and
+
+    q_i = clip(accel_psd · max(1, ε_i)^adapt_exponent, accel_psd, accel_psd_max)
+
+A still or slowly moving head keeps ``q_i`` at the small ``accel_psd``, so the noisy depth axis
+(the face-size measurement) is averaged over many frames; a head that moves faster than that model
+allows makes its innovations grow and ``q_i`` rises, on that axis only, until the filter follows.
+With ``accel_psd_max <= accel_psd`` the filter is the plain constant-``q`` one.
 
 Time is always the *frame* time in seconds (sim time or camera time), never the wall clock, so a
 replayed recording gives the same estimates.
@@ -39,7 +52,22 @@ class KalmanParams(Section):
     model_config = ConfigDict(frozen=True)
 
     accel_psd: float = Field(
-        0.5, ge=0.0, description="q, white-acceleration spectral density [m^2/s^3]"
+        1e-4, ge=0.0,
+        description="q, white-acceleration spectral density of a still or slowly moving head (the "
+        "floor of the adaptive q) [m^2/s^3]",
+    )
+    accel_psd_max: float = Field(
+        0.05, ge=0.0,
+        description="cap of the adaptive q when the head moves faster than accel_psd allows; <= "
+        "accel_psd: constant q [m^2/s^3]",
+    )
+    adapt_time_constant_s: float = Field(
+        0.6, gt=0.0,
+        description="time constant of the average of the normalised innovations that adapts q [s]",
+    )
+    adapt_exponent: float = Field(
+        4.0, ge=0.0,
+        description="q = accel_psd * max(1, mean normalised innovation)^this (per axis)",
     )
     initial_velocity_sigma: float = Field(
         0.5, gt=0.0, description="velocity 1-sigma at (re)initialisation [m/s]"
@@ -74,6 +102,8 @@ class ConstantVelocityKalman:
         self.last_update_t: float | None = None
         self.rejections = 0
         self.last_d2 = 0.0
+        #: (3,) exponential average of the per-axis normalised squared innovation y_i²/S_ii
+        self.nis: FloatArray = np.ones(3)
 
     @property
     def initialised(self) -> bool:
@@ -108,11 +138,18 @@ class ConstantVelocityKalman:
         f[:3, 3:] = dt * np.eye(3)
         return f
 
+    @property
+    def accel_psd(self) -> FloatArray:
+        """The current per-axis spectral density q_i (3,), m²/s³ (see the module docstring)."""
+        p = self.params
+        q0 = p.accel_psd
+        q = q0 * np.maximum(1.0, self.nis) ** p.adapt_exponent
+        return np.clip(q, q0, max(q0, p.accel_psd_max))
+
     def process_noise(self, dt: float) -> FloatArray:
-        """Q(dt), 6×6, for the white-acceleration model."""
-        q = self.params.accel_psd
-        i3 = np.eye(3)
-        return q * np.block([[dt**3 / 3 * i3, dt**2 / 2 * i3], [dt**2 / 2 * i3, dt * i3]])
+        """Q(dt), 6×6, for the white-acceleration model with the current per-axis q_i."""
+        d = np.diag(self.accel_psd)
+        return np.block([[dt**3 / 3 * d, dt**2 / 2 * d], [dt**2 / 2 * d, dt * d]])
 
     def initialise(self, t: float, z: ArrayLike, r: ArrayLike) -> None:
         """Start at position ``z`` (3,) with covariance ``r`` (3×3) and zero velocity."""
@@ -123,6 +160,7 @@ class ConstantVelocityKalman:
         self.t = float(t)
         self.last_update_t = float(t)
         self.rejections = 0
+        self.nis = np.ones(3)
 
     def predict(self, t: float) -> None:
         """Propagate the state to time ``t`` (s). A ``t`` earlier than the state is ignored
@@ -152,11 +190,17 @@ class ConstantVelocityKalman:
         if self.t is None:
             self.initialise(t, z, r)
             return UpdateResult.INITIALISED
+        dt = max(0.0, float(t) - self.t)
         self.predict(t)
         s = self.P[:3, :3] + r
         y = z - self.x[:3]
         d2 = float(y @ np.linalg.solve(s, y))
         self.last_d2 = d2
+        # Manoeuvre adaptation: every measurement's per-axis normalised innovation, clipped at
+        # the gate, so a rejected one (a manoeuvre the small q cannot follow, or an outlier)
+        # raises q at most by a bounded step instead of being ignored until the filter restarts.
+        alpha = min(1.0, dt / self.params.adapt_time_constant_s)
+        self.nis += alpha * (np.minimum(y**2 / np.diag(s), self._gate) - self.nis)
         if d2 > self._gate:
             self.rejections += 1
             if self.rejections >= self.params.max_consecutive_rejections:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from pydantic import ValidationError
 
@@ -66,3 +67,21 @@ def test_bad_detector_settings(tmp_path) -> None:
         HaarDetector(str(bad))
     with pytest.raises(ValidationError, match="roi_size_range"):
         PipelineParams(roi_size_range=(1.2, 1.5))
+
+
+def test_roi_measurement_does_not_follow_the_predicted_size(cam: SyntheticCamera) -> None:
+    # The ROI window and its face-size range come from the hint's width snapped to a geometric
+    # grid: hints a few percent apart in size (same centre) measure the same box, so a lagging
+    # prediction cannot drag the measured size.
+    detector = HaarDetector()
+    frame = cam.render(0.0)
+    x, y, w, h = cam.truth(0.0)[0].box
+    step = PipelineParams().roi_size_step
+    ref = step ** round(np.log(w) / np.log(step))
+    boxes = [  # a fresh pipeline each: the same ROI grid offset
+        DetectionPipeline(detector).roi(frame, Detection(x + (w - s) / 2, y + (h - s) / 2, s, s))
+        for s in (ref / step**0.4, ref, ref * step**0.4)
+    ]
+    assert all(b is not None for b in boxes)
+    assert len({tuple(b.box) for b in boxes}) == 1
+    assert iou(boxes[0].box, cam.truth(0.0)[0].box) > 0.8

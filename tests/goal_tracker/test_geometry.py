@@ -8,12 +8,14 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from psm.errors import ParameterError
 from services.goal_tracker.geometry import (
     FORWARD_LOOKING,
     FaceGeometry,
     Intrinsics,
+    MeasurementNoise,
     Transform,
     box_to_camera_point,
     camera_point_to_box,
@@ -116,3 +118,29 @@ def test_intrinsics_scaled_and_from_fov() -> None:
 def test_bad_geometry_raises(make) -> None:
     with pytest.raises(ParameterError):
         make()
+
+
+def test_measurement_covariance_from_the_geometry() -> None:
+    # Camera looking along base +y (the stack's mount): camera x -> base x, camera z (depth) ->
+    # base y, camera y -> base -z. The covariance is diagonal in the base frame with
+    # sigma_depth = Z sigma_w / w and sigma_image = Z sigma_u / fx (face on the optical axis).
+    noise = MeasurementNoise(pixel_sigma=[1.5, 1.2, 1.0], size_sigma_frac=0.02)
+    geo = FaceGeometry(INTR, 0.16, Transform.from_rpy([0.35, 0, 0.45], [-90, 0, 0]), (0, 0, 0), noise)
+    z = 0.5
+    w = INTR.fx * 0.16 / z
+    box = [INTR.cx - w / 2, INTR.cy - w / 2, w, w]
+    p, cov = geo.measure(box)
+    np.testing.assert_allclose(p, [0.35, 0.5, 0.45], atol=1e-12)
+    sigma_w = math.hypot(1.0, 0.02 * w)
+    np.testing.assert_allclose(
+        np.diag(cov), [(z * 1.5 / INTR.fx) ** 2, (z * sigma_w / w) ** 2, (z * 1.2 / INTR.fy) ** 2], rtol=1e-12
+    )
+    np.testing.assert_allclose(cov - np.diag(np.diag(cov)), 0.0, atol=1e-18)
+    # for a large face the relative size noise dominates: depth 1-sigma -> Z * size_sigma_frac
+    assert math.sqrt(cov[1, 1]) == pytest.approx(z * 0.02, rel=0.05)
+    np.testing.assert_allclose(noise.box_sigma(100.0), [1.5, 1.2, math.hypot(1.0, 2.0)])
+
+
+def test_measurement_noise_rejects_non_positive_sigma() -> None:
+    with pytest.raises(ValidationError, match="pixel_sigma"):
+        MeasurementNoise(pixel_sigma=[1.0, 0.0, 1.0])

@@ -8,9 +8,20 @@ no valid goal is off by more than 60 mm.
 
 from __future__ import annotations
 
+from pathlib import Path
+
+import cv2
 import numpy as np
 import pytest
 
+from benchmarks.goal_tracker import best_lag_s
+from services.bus.config import load_config
+from services.goal_tracker.config import (
+    TrackerConfig,
+    build_geometry,
+    build_synthetic_camera,
+    build_tracker,
+)
 from services.goal_tracker.detectors import DetectionPipeline, HaarDetector
 from services.goal_tracker.geometry import FaceGeometry, Intrinsics, Transform
 from services.goal_tracker.kalman import KalmanParams
@@ -151,3 +162,53 @@ def test_non_increasing_stamps_do_not_break_the_filter(stamps: list[int]) -> Non
     for s in [*stamps, *stamps]:
         out = tracker.process(frame, s)
     assert out.stamp_ns > stamps[0]
+
+
+STACK_TOML = Path(__file__).resolve().parents[2] / "configs" / "stack.toml"
+
+
+def _stack_scene(n: int, still: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The stack's tracker on the stack's synthetic face (0.5 m away, base y = camera depth),
+    frames JPEG round-tripped as on the bus: frame times (n,), goals (n, 3), truth (n, 3)."""
+    over = {"goal_tracker.synthetic.amplitude_m": [0.0, 0.0, 0.0]} if still else {}
+    sec = load_config(TrackerConfig, STACK_TOML, env={}, overrides=over).goal_tracker
+    cam, geo, tracker = build_synthetic_camera(sec), build_geometry(sec), build_tracker(sec)
+    t = np.arange(n) / sec.synthetic.fps
+    est, truth = np.full((n, 3), np.nan), np.empty((n, 3))
+    for k, tk in enumerate(t):
+        _, buf = cv2.imencode(".jpg", cam.render(tk), [cv2.IMWRITE_JPEG_QUALITY, sec.camera.jpeg_quality])
+        out = tracker.process(cv2.imdecode(buf, cv2.IMREAD_COLOR), round(tk * 1e9))
+        truth[k] = geo.camera_to_base.apply(cam.truth(tk)[0].position_cam + np.asarray(sec.face.offset_m))
+        if out.valid:
+            est[k] = out.position
+    return t, est, truth
+
+
+def test_still_face_goal_is_steady_in_depth() -> None:
+    # Stated: after 5 s the goal of a still face 0.5 m away has a 1-sigma <= 1.5 mm on every axis
+    # (measured 0.4 / 1.2 / 0.3 mm; the former filter: 6.7 mm along depth = base y) and its second
+    # difference (the acceleration an arm following it must make) p99 < 4 m/s^2 (measured 2.3;
+    # was 22).
+    t, est, _ = _stack_scene(300, still=True)
+    e = est[t >= 5.0]
+    assert not np.isnan(e).any()
+    assert np.all(np.std(e, axis=0) <= 0.0015), np.std(e, axis=0)
+    acc = np.abs(np.diff(e, 2, axis=0)) * 30.0**2
+    assert np.all(np.percentile(acc, 99, axis=0) < 4.0)
+
+
+def test_moving_face_follows_the_stack_path() -> None:
+    # Stated: on the stack's path (±3 cm at 0.04-0.07 Hz) the goal's RMS error after 5 s is
+    # < 8 mm per axis (measured 2.6 / 6.1 / 0.6 mm, the depth part mostly the Haar size bias),
+    # its acceleration p99 < 4 m/s^2 (measured 3.1; was 26), and it lags the truth by < 0.25 s
+    # on the image axes.
+    t, est, truth = _stack_scene(450, still=False)
+    keep = t >= 5.0
+    e, tr, tk = est[keep], truth[keep], t[keep]
+    assert not np.isnan(e).any()
+    rms = np.sqrt(np.mean((e - tr) ** 2, axis=0))
+    assert np.all(rms < 0.008), rms
+    acc = np.abs(np.diff(e, 2, axis=0)) * 30.0**2
+    assert np.all(np.percentile(acc, 99, axis=0) < 4.0)
+    for axis in (0, 2):  # base x, z: the image axes (amplitude 3 and 2 cm)
+        assert abs(best_lag_s(tk, e[:, axis], tr[:, axis])) < 0.25
