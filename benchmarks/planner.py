@@ -308,6 +308,9 @@ class _CapturePublisher:
         self.last = b
         self.n += 1
 
+    def put(self, msg: Any) -> None:
+        self.put_bytes(msg.SerializeToString())
+
 
 def make_planner(task_file: Path | None = None) -> Any:
     """A :class:`PlannerService` with its bus parts replaced (fake service, capturing publisher)."""
@@ -322,6 +325,7 @@ def make_planner(task_file: Path | None = None) -> Any:
     svc = PlannerService(cfg)
     svc.svc = _FakeService()  # type: ignore[assignment]
     svc._cmd_pub = _CapturePublisher()  # type: ignore[attr-defined]
+    svc._goal_pub = _CapturePublisher()  # type: ignore[attr-defined]  # the planner's goal in use
     svc._state_key = "psm/arm/state"  # type: ignore[attr-defined]
     svc._goals_prefix = "psm/goals/"  # type: ignore[attr-defined]
     return svc

@@ -38,5 +38,5 @@ def test_the_router_listens_where_the_clients_connect() -> None:
 def test_the_default_stack_validates_every_process() -> None:
     stack = load_stack(CONFIGS / "stack.toml", env={})
     names = [p.name for p in stack.processes]
-    assert names == ["router", "recorder", "arm", "camera", "goal_tracker", "planner"]
+    assert names == ["router", "recorder", "arm", "camera", "goal_tracker", "obstacle_monitor", "planner"]
     assert stack.configs["camera"].goal_tracker.synthetic.clock == "arm"  # type: ignore[attr-defined]
