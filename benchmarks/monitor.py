@@ -70,20 +70,11 @@ def deployed_clearance_every() -> int:
 
 
 def _stack_file(workdir: Path, endpoint: str, monitor: dict[str, Any], rt_priority: int) -> Path:
+    """The case's stack file: router, probe, monitor (10 obstacles, ``monitor`` fields), arm."""
+    from benchmarks.stack import stack_header
+
     fields = "".join(f"{k} = {json.dumps(v)}\n" for k, v in monitor.items())
-    text = f"""prefix = "psm"
-clock = "realtime"
-log_level = "WARNING"
-[zenoh]
-mode = "client"
-connect = [{json.dumps(endpoint)}]
-multicast = false
-[stack]
-name = "monitor-benchmark"
-startup_timeout_s = 60.0
-stop_timeout_s = 15.0
-run_dir = {json.dumps(str(workdir))}
-[[stack.processes]]
+    text = stack_header("monitor-benchmark", endpoint, workdir) + f"""[[stack.processes]]
 name = "router"
 command = ["serve", "router"]
 [[stack.processes]]

@@ -97,6 +97,24 @@ class Stack:
             self.supervisor.shutdown()
 
 
+def stack_header(name: str, endpoint: str, workdir: Path) -> str:
+    """The shared part of a benchmark's stack file: bus settings (a Zenoh client of the router at
+    ``endpoint``, multicast off, realtime clock) and the ``[stack]`` table (logs in ``workdir``)."""
+    return f"""prefix = "psm"
+clock = "realtime"
+log_level = "WARNING"
+[zenoh]
+mode = "client"
+connect = [{json.dumps(endpoint)}]
+multicast = false
+[stack]
+name = {json.dumps(name)}
+startup_timeout_s = 60.0
+stop_timeout_s = 15.0
+run_dir = {json.dumps(str(workdir))}
+"""
+
+
 def _stack_file(services: tuple[str, ...], workdir: Path, endpoint: str, fps: float,
                 arm_stats: Path, rt_priority: int = 0) -> Path:
     """A stack file with the scenario's processes (the benchmark's own stack description)."""
@@ -113,20 +131,9 @@ def _stack_file(services: tuple[str, ...], workdir: Path, endpoint: str, fps: fl
         "camera": f"[goal_tracker.synthetic]\nclock = \"wall\"\nfps = {fps}\n",
         "recorder": f"[recorder]\noutput = {json.dumps(str(workdir / 'stack.mcap'))}\n",
     }
-    text = f"""prefix = "psm"
-clock = "realtime"
-log_level = "WARNING"
-[zenoh]
-mode = "client"
-connect = [{json.dumps(endpoint)}]
-multicast = false
-[stack]
-name = "benchmark"
-startup_timeout_s = 60.0
-stop_timeout_s = 15.0
-run_dir = {json.dumps(str(workdir))}
-{procs}
-""" + "".join(t for name, t in tables.items() if name in services)
+    text = stack_header("benchmark", endpoint, workdir) + procs + "\n" + "".join(
+        t for name, t in tables.items() if name in services
+    )
     path = workdir / "stack.toml"
     path.write_text(text)
     return path

@@ -13,15 +13,22 @@ tracker, obstacle monitor, planner) over real Zenoh on loopback.
 from __future__ import annotations
 
 import json
-import os
-import signal
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from planner.test_feeding_stack import ROOT, _check_task, _up, _up_args
+from planner.test_feeding_stack import (
+    ROOT,
+    _check_task,
+    _up,
+    _up_args,
+    arm_speeds,
+    client_session,
+    kill_mid_motion,
+    up_port,
+)
 
 from services.supervisor import ManagedProcess, psm_argv
 
@@ -89,22 +96,6 @@ def test_the_papers_obstacle_scenario_through_the_stack(tmp_path: Path) -> None:
     assert summary["task"]["planner"]["collision_stops"] >= 1
 
 
-def _port(args: list[str]) -> int:
-    """The router port of ``psm up`` arguments from :func:`_up_args`."""
-    listen = next(a for a in args if a.startswith("router.listen="))
-    return int(listen.rsplit(":", 1)[1].rstrip('"]'))
-
-
-def _zenoh_session(port: int) -> Any:
-    import zenoh
-
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(conf)
-
-
 def test_an_obstacle_moved_into_the_path_mid_motion_is_avoided(tmp_path: Path) -> None:
     """The wall starts out of the way; when reach_person starts a bus message moves it between
     the arm and the person. The arm never enters its safety volume and still reaches the person."""
@@ -114,7 +105,7 @@ def test_an_obstacle_moved_into_the_path_mid_motion_is_avoided(tmp_path: Path) -
 
     away = '{id = "wall", shape = "box", position_m = [0.5, -0.6, 0.115], size_m = [0.4, 0.03, 0.23]}'
     args = _up_args(tmp_path, "lockstep", f"obstacle_monitor.obstacles=[{away}]")
-    port = _port(args)
+    port = up_port(args)
     prefix = f"feed{port}"
     up = ManagedProcess("up", psm_argv(args), tmp_path / "up.log", cwd=ROOT)
     moved: list[int] = []
@@ -123,7 +114,7 @@ def test_an_obstacle_moved_into_the_path_mid_motion_is_avoided(tmp_path: Path) -
         session = None
         while session is None and time.monotonic() < deadline:
             try:
-                session = _zenoh_session(port)
+                session = client_session(port)
             except Exception:
                 time.sleep(0.2)
         assert session is not None, up.log_text()
@@ -194,49 +185,10 @@ def test_an_obstacle_next_to_the_forearm_stops_the_arm(tmp_path: Path) -> None:
 def test_the_monitor_killed_mid_motion_brakes_the_arm_to_rest(tmp_path: Path) -> None:
     """Realtime stack; SIGKILL of the obstacle monitor while the arm moves: the planner loses the
     monitor's liveliness and brakes every axis to rest (it never moves blind)."""
-    from services.bus.messages import ArmState, Keys, PlannerStatus
-
-    args = _up_args(tmp_path, "realtime")
-    port = _port(args)
-    up = ManagedProcess("up", psm_argv(args), tmp_path / "up.log", cwd=ROOT)
-    speed: list[float] = []
-    try:
-        deadline = time.monotonic() + 120
-        pid = None
-        while time.monotonic() < deadline and pid is None:
-            text = up.log_text()
-            if "started planner (pid " in text:
-                for line in text.splitlines():
-                    if line.startswith("started obstacle_monitor (pid "):
-                        pid = int(line.rsplit("(pid ", 1)[1].rstrip(")"))
-            time.sleep(0.1)
-        assert pid is not None, up.log_text()
-        session = _zenoh_session(port)
-
-        def on_status(sample: Any) -> None:
-            speed.append(PlannerStatus.FromString(sample.payload.to_bytes()).speed_mps)
-
-        sub = session.declare_subscriber(Keys(f"feed{port}").planner_status.key, on_status)
-        while time.monotonic() < deadline and not (speed and speed[-1] > 0.1):
-            time.sleep(0.01)  # until grasp_spoon is under way
-        sub.undeclare()
-        session.close()
-        assert speed and speed[-1] > 0.1, up.log_text()
-        killed_ns = time.time_ns()
-        os.kill(pid, signal.SIGKILL)
-        rc = up.wait(60)
-    finally:
-        up.stop()
-    log = up.log_text()
+    rc, log, killed_ns = kill_mid_motion(tmp_path, "obstacle_monitor")
     assert rc == 1 and "obstacle_monitor died" in log, log
-    planner_log = (tmp_path / "run" / "planner.log").read_text()
-    assert "obstacle monitor gone" in planner_log
-    speed = [
-        (m.stamp_ns, float(np.linalg.norm([m.ee_linear_velocity.x, m.ee_linear_velocity.y,
-                                           m.ee_linear_velocity.z])))
-        for m in _read(tmp_path / "run.mcap")["arm/state"]
-        if isinstance(m, ArmState)
-    ]
+    assert "obstacle monitor gone" in (tmp_path / "run" / "planner.log").read_text()
+    speed = arm_speeds(tmp_path / "run.mcap")
     before = [v for t, v in speed if killed_ns - 300_000_000 < t < killed_ns]
     after = [(t - killed_ns) * 1e-9 for t, v in speed if t > killed_ns and v < 2e-3]
     assert before and max(before) > 0.05, "the arm was not moving when the monitor was killed"

@@ -13,11 +13,10 @@ import numpy as np
 import pytest
 
 from psm.obstacles import Obstacle, compile_obstacles
-from services.bus.config import read_toml
-from services.planner.models import ModelCache, TaskModels, load_task_models
+from services.planner.models import TaskModels
 from services.planner.sequencer import CollisionInfo
 from services.planner.simulate import segment_predictor, simulate_task
-from services.tasks.feeding import DEFAULT_FEEDING_CONFIG, FeedingConfig, parse_feeding
+from services.tasks.feeding import FeedingConfig, parse_feeding
 
 ROOT = Path(__file__).resolve().parents[2]
 #: The segment test's inflation: the stack's margin_m + tool_radius_m (configs/stack.toml).
@@ -27,16 +26,6 @@ MARGIN = 0.18
 #: and the person, lower than the person's mouth, so the lateral (y) component has to wait
 #: until z has cleared its top.
 WALL = Obstacle("wall", "box", np.array([0.50, 0.465, 0.115]), size=np.array([0.40, 0.03, 0.23]))
-
-
-@pytest.fixture(scope="module")
-def feeding() -> FeedingConfig:
-    return parse_feeding(read_toml(DEFAULT_FEEDING_CONFIG))
-
-
-@pytest.fixture(scope="module")
-def models(feeding: FeedingConfig) -> TaskModels:
-    return load_task_models(feeding.task, ModelCache(ROOT / "out" / "models"))
 
 
 def _only(feeding: FeedingConfig, *steps: str) -> FeedingConfig:

@@ -137,46 +137,85 @@ def test_the_person_lost_holds_the_motion_and_it_resumes(tmp_path: Path) -> None
     assert holding_speeds and min(holding_speeds) < 0.01, holding_speeds
 
 
-def test_the_planner_killed_mid_motion_leaves_the_arm_braked_to_rest(tmp_path: Path) -> None:
-    """Realtime stack; SIGKILL of the planner while the arm moves: the arm brakes to rest at
-    once (the planner's liveliness token is watched; else its watchdog), the stack reports it."""
+def up_port(args: list[str]) -> int:
+    """The router port of ``psm up`` arguments from :func:`_up_args`."""
+    listen = next(a for a in args if a.startswith("router.listen="))
+    return int(listen.rsplit(":", 1)[1].rstrip('"]'))
+
+
+def client_session(port: int) -> Any:
+    """A Zenoh client session on the router at 127.0.0.1:``port`` (multicast off)."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(conf)
+
+
+def kill_mid_motion(tmp_path: Path, process: str) -> tuple[int | None, str, int]:
+    """``psm up`` of the shipped stack in realtime; SIGKILL of ``process`` once the planner reports
+    the arm moving faster than 0.1 m/s (grasp_spoon under way). Returns the supervisor's exit
+    code, its log and the kill time (wall clock = the realtime stack's clock) [ns]."""
     import os
     import signal
     import time
 
-    from services.bus.log import read_log
-    from services.bus.messages import ArmState
+    from services.bus.messages import Keys, PlannerStatus
 
     args = _up_args(tmp_path, "realtime")
+    port = up_port(args)
     up = ManagedProcess("up", psm_argv(args), tmp_path / "up.log", cwd=ROOT)
-    killed_ns = 0
+    speed: list[float] = []
     try:
-        deadline = time.monotonic() + 90
+        deadline = time.monotonic() + 120
         pid = None
         while time.monotonic() < deadline and pid is None:
-            for line in up.log_text().splitlines():
-                if line.startswith("started planner (pid "):
-                    pid = int(line.rsplit("(pid ", 1)[1].rstrip(")"))
+            text = up.log_text()
+            if "started planner (pid " in text:  # the last process: the stack is up
+                for line in text.splitlines():
+                    if line.startswith(f"started {process} (pid "):
+                        pid = int(line.rsplit("(pid ", 1)[1].rstrip(")"))
             time.sleep(0.1)
         assert pid is not None, up.log_text()
-        time.sleep(2.5)  # grasp_spoon is under way
+        session = client_session(port)
+        sub = session.declare_subscriber(
+            Keys(f"feed{port}").planner_status.key,
+            lambda sample: speed.append(PlannerStatus.FromString(sample.payload.to_bytes()).speed_mps),
+        )
+        while time.monotonic() < deadline and not (speed and speed[-1] > 0.1):
+            time.sleep(0.01)
+        sub.undeclare()
+        session.close()
+        assert speed and speed[-1] > 0.1, up.log_text()
         killed_ns = time.time_ns()
         os.kill(pid, signal.SIGKILL)
         rc = up.wait(60)
     finally:
         up.stop()
-    log = up.log_text()
+    return rc, up.log_text(), killed_ns
+
+
+def arm_speeds(recording: Path) -> list[tuple[int, float]]:
+    """``(stamp_ns, end-effector speed [m/s])`` of every recorded arm state."""
+    from services.bus.log import read_log
+    from services.bus.messages import ArmState
+
+    out = []
+    for _k, msg, _t in read_log(recording):
+        if isinstance(msg, ArmState):
+            v = msg.ee_linear_velocity
+            out.append((int(msg.stamp_ns), float(np.linalg.norm([v.x, v.y, v.z]))))
+    return out
+
+
+def test_the_planner_killed_mid_motion_leaves_the_arm_braked_to_rest(tmp_path: Path) -> None:
+    """Realtime stack; SIGKILL of the planner while the arm moves: the arm brakes to rest at
+    once (the planner's liveliness token is watched; else its watchdog), the stack reports it."""
+    rc, log, killed_ns = kill_mid_motion(tmp_path, "planner")
     assert rc == 1 and "planner died" in log, log
-    speed = [
-        (
-            msg.stamp_ns,
-            float(
-                np.linalg.norm([msg.ee_linear_velocity.x, msg.ee_linear_velocity.y, msg.ee_linear_velocity.z])
-            ),
-        )
-        for _k, msg, _t in read_log(tmp_path / "run.mcap")
-        if isinstance(msg, ArmState)
-    ]
+    speed = arm_speeds(tmp_path / "run.mcap")
     before = [v for t, v in speed if killed_ns - 300_000_000 < t < killed_ns]
     after = [(t - killed_ns) * 1e-9 for t, v in speed if t > killed_ns and v < 1e-3]
     assert before and max(before) > 0.05, "the arm was not moving when the planner was killed"

@@ -12,24 +12,13 @@ import numpy as np
 import pytest
 
 from psm import PhaseSpaceModel
-from services.bus.config import read_toml
-from services.planner.models import ModelCache, TaskModels, load_task_models
+from services.planner.models import TaskModels
 from services.planner.orientation import OrientationProfile, OrientationTracker
 from services.planner.simulate import simulate_task
 from services.planner.task import StepSpec, TaskSpec
-from services.tasks.feeding import DEFAULT_FEEDING_CONFIG, FeedingConfig, parse_feeding
+from services.tasks.feeding import FeedingConfig, parse_feeding
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(scope="module")
-def feeding() -> FeedingConfig:
-    return parse_feeding(read_toml(DEFAULT_FEEDING_CONFIG))
-
-
-@pytest.fixture(scope="module")
-def models(feeding: FeedingConfig) -> TaskModels:
-    return load_task_models(feeding.task, ModelCache(ROOT / "out" / "models"))
 
 
 def _moved(feeding: FeedingConfig, **scene: Any) -> FeedingConfig:
