@@ -73,7 +73,14 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.bus import _line, _pct, _spawn, _state_bytes
-from services.supervisor import SUPERVISOR_PID_ENV, ManagedProcess, cpu_seconds, free_port, psm_argv
+from services.supervisor import (
+    SUPERVISOR_PID_ENV,
+    ManagedProcess,
+    cpu_seconds,
+    free_port,
+    psm_argv,
+    wait_port,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -389,14 +396,7 @@ def _dora_name(pid: int, root: int) -> str:
 
 
 def _wait_port(port: int, timeout_s: float, proc: ManagedProcess) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 0.2):
-            return
-        if not proc.alive():
-            break
-        time.sleep(0.05)
-    raise RuntimeError(f"{proc.name} does not listen on port {port}: {proc.log_tail()}")
+    wait_port(port, timeout_s, proc)
 
 
 def _wait_terminated(max_s: float) -> None:

@@ -72,6 +72,19 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def wait_port(port: int, timeout_s: float, proc: ManagedProcess) -> None:
+    """Wait until something accepts TCP connections on 127.0.0.1:``port`` (``proc`` listening),
+    at most ``timeout_s``; raises RuntimeError with the tail of ``proc``'s log if it does not."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), 0.2):
+            return
+        if not proc.alive():
+            break
+        time.sleep(0.05)
+    raise RuntimeError(f"{proc.name} does not listen on port {port}: {proc.log_tail()}")
+
+
 def psm_argv(command: Sequence[str]) -> list[str]:
     """The argv that runs ``psm <command...>`` with this interpreter."""
     return [sys.executable, "-m", "services.cli", *command]

@@ -12,7 +12,7 @@ from typing import Any
 
 import pytest
 
-from services.supervisor import ManagedProcess, free_port, psm_argv
+from services.supervisor import ManagedProcess, free_port, psm_argv, wait_port
 
 pytestmark = pytest.mark.integration
 
@@ -41,6 +41,7 @@ def test_commands_change_the_latched_set_and_bad_ones_are_counted(tmp_path: Path
     monitor = None
     session = None
     try:
+        wait_port(port, 60, router)
         monitor = ManagedProcess(
             "monitor",
             psm_argv(["obstacles", *_bus(port, prefix), "--set", "obstacle_monitor.clearance=false"]),
