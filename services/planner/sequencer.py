@@ -459,11 +459,13 @@ class TaskRunner:
         spec = self.step_spec
         assert spec is not None and rep is not None
         goal, goal_vel, why = self.goals.resolve(spec, now_ns)
-        if goal is None:
+        if self.collision_policy is not None and self._obstacle_guard(now_ns, rep, dt):
+            out = self._guard_stop(x, v, quat)  # no usable prediction or a protective stop
+        elif goal is None:
             out = self._unavailable(why, now_ns, x, v, quat, dt)
-        elif self.collision_policy is not None and self._obstacle_guard(now_ns, rep, dt):
-            out = self._guard_stop(x, v, quat)
         else:
+            if self.collision_policy is not None:
+                self._apply_stops(self._ctrl)
             out = self._available(spec, rep, goal, goal_vel, now_ns, x, v, quat, dt)
             if self.collision_policy is not None and self._phase == "run":
                 self._check_blocked(rep, dt)
@@ -579,6 +581,9 @@ class TaskRunner:
                 self._neutral_ctrl = model.controller(
                     self.goals.static[self.task.neutral], **self._neutral_opts
                 )
+                self._stops_set = False  # a fresh controller: the stops are applied to it anew
+            if self.collision_policy is not None:
+                self._apply_stops(self._neutral_ctrl)  # the detour is guarded as the step is
             acc = self._neutral_ctrl.step(x, v, dt)
             return PlannerOutput(np.asarray(acc, dtype=float), self._last_quat, np.zeros(3))
         return self._hold(x, v, quat)
@@ -615,7 +620,12 @@ class TaskRunner:
             self._guard_target = None
             self.state, self.detail = RUNNING, ""
             self._event("RESUMED", "collision prediction available")
-        ctrl = self._ctrl
+        return False
+
+    def _apply_stops(self, ctrl: PSMController | None) -> None:
+        """Eq. 15 on ``ctrl`` (the controller about to run): the latest prediction's stop
+        coordinates while it predicts a collision, none once the path is clear."""
+        info = self._collision
         assert info is not None and ctrl is not None
         if info.collision and info.stop_position.shape == (3,) and np.isfinite(info.stop_position).any():
             if not self._stops_set:
@@ -635,7 +645,6 @@ class TaskRunner:
             ctrl.clear_stops()
             self._stops_set = False
             self._event("PATH_CLEAR", "path clear of obstacles: braked axes resume")
-        return False
 
     def _check_blocked(self, rep: StepReport, dt: float) -> None:
         """HOLDING with the obstacle's id while the arm rests at a collision stop it cannot pass."""

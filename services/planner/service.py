@@ -207,24 +207,40 @@ class PlannerService(ServiceApp):
                 self._reject_state(f"encoding {sample.encoding} is not psm.ArmState")
             return
         with self._lock:
+            if not self._parse_state(payload):
+                return
             if self._wait_prediction:
                 superseded = self._parked is not None
                 self._parked = None
-                if not superseded and self.runner.monitor_alive:
-                    tick = _peek_tick(payload)
-                    if tick is not None and tick > self._pred_tick and tick != self._last_tick:
-                        self._parked = (payload, t_recv, tick)  # answered by _on_prediction
-                        return
-            self._handle_state(payload, t_recv)
+                tick = int(self._state.tick)
+                if (
+                    not superseded
+                    and self.runner.monitor_alive
+                    and tick > self._pred_tick
+                    and tick != self._last_tick
+                ):
+                    self._parked = (payload, t_recv, tick)  # answered by _on_prediction
+                    return
+            self._handle_state(t_recv)
 
-    def _handle_state(self, payload: bytes, t_recv: int) -> None:
-        """Parse, check and answer one state (under the lock)."""
-        st = self._state
+    def _parse_state(self, payload: bytes) -> bool:
+        """Parse ``payload`` into the reused state message; False (rejected) if it does not parse."""
         try:
-            st.ParseFromString(payload)
+            self._state.ParseFromString(payload)
         except Exception as exc:
             self._reject_state(f"malformed ArmState ({len(payload)} bytes): {exc}")
-            return
+            return False
+        return True
+
+    def _answer_parked(self) -> None:
+        """Answer the state waiting for its prediction, if any (under the lock)."""
+        parked, self._parked = self._parked, None
+        if parked is not None and self._parse_state(parked[0]):
+            self._handle_state(parked[1])
+
+    def _handle_state(self, t_recv: int) -> None:
+        """Check and answer the parsed state (under the lock)."""
+        st = self._state
         self.svc.counters.add("received")
         reply = self._answer(st)
         if reply is None:
@@ -294,20 +310,16 @@ class PlannerService(ServiceApp):
                     detail=pr.detail,
                 )
             )
-            parked = self._parked
-            if parked is not None and parked[2] <= tick:
-                self._parked = None
+            if self._parked is not None and self._parked[2] <= tick:
                 self.waited_states += 1
-                self._handle_state(parked[0], parked[1])
+                self._answer_parked()
 
     def _on_monitor(self, name: str, alive: bool) -> None:
         with self._lock:
             self.runner.set_monitor_alive(alive)
             if not alive:
                 self.svc.log.warning("obstacle monitor gone: braking every axis", extra={"service": name})
-                parked, self._parked = self._parked, None
-                if parked is not None:
-                    self._handle_state(parked[0], parked[1])
+                self._answer_parked()
 
     def _answer(self, st: ArmState) -> bytes | None:
         """The command bytes answering ``st``, or None when it is rejected (under the lock)."""
@@ -554,31 +566,6 @@ class PlannerService(ServiceApp):
             tmp.write_text(json.dumps(s, indent=2, default=float))
             with contextlib.suppress(OSError):
                 tmp.replace(path)
-
-
-def _peek_tick(payload: bytes) -> int | None:
-    """The ``tick`` of an encoded ArmState without parsing the rest (None: not decodable here)."""
-    # Fields are serialised in number order: stamp_ns (1, varint, tag 0x08), tick (2, varint,
-    # tag 0x10), then the rest. A field left at its default (0) is absent.
-    i, n = 0, len(payload)
-    while i < n:
-        tag = payload[i]
-        i += 1
-        if tag & 0x80 or tag >> 3 > 2:
-            return 0  # past field 2: the tick is 0
-        if tag not in (0x08, 0x10):
-            return None
-        value, shift = 0, 0
-        while i < n:
-            b = payload[i]
-            i += 1
-            value |= (b & 0x7F) << shift
-            shift += 7
-            if not b & 0x80:
-                break
-        if tag == 0x10:
-            return value
-    return 0
 
 
 def main(config: PlannerConfig) -> int:

@@ -244,3 +244,30 @@ def test_segment_predictor_stop_axes_match_the_wall(feeding: FeedingConfig) -> N
     assert math.isnan(info.stop_position[0]) and math.isnan(info.stop_position[2])
     assert info.stop_position[1] == pytest.approx(WALL.position[1] - 0.5 * WALL.size[1] - MARGIN)
     assert len(compile_obstacles([WALL], MARGIN)) == 1
+
+
+def test_the_neutral_detour_is_guarded_like_the_step(feeding: FeedingConfig, models: TaskModels) -> None:
+    """on_goal_lost = neutral: the person is lost in reach_person and the predictions stop at the
+    same time: the detour to neutral does not move the arm blind (it brakes and waits); once
+    both are back the task completes."""
+    data = json.loads(_only(feeding, "scoop", "reach_person").model_dump_json())
+    data["task"]["on_goal_lost"] = "neutral"
+    cfg = parse_feeding(data)
+    person = cfg.scene.person
+    lost = (5.0, 7.0)  # s of sim time, during reach_person
+    t0: list[int] = []
+
+    def fn(stamp_ns: int, tick: int, *_: Any) -> CollisionInfo | None:
+        t0.append(stamp_ns) if not t0 else None
+        t = (stamp_ns - t0[0]) * 1e-9
+        return None if lost[0] <= t < lost[1] else CollisionInfo(stamp_ns, tick)
+
+    res = simulate_task(
+        cfg, models, goals=lambda t: {"person": (person, not lost[0] <= t < lost[1])},
+        start_pose="ready", collision=fn,
+    )
+    tr = res.trace
+    t = tr["t"] - tr["t"][0]
+    blind = (t > lost[0] + 0.6) & (t < lost[1])
+    assert np.all(np.linalg.norm(tr["v"][blind], axis=1) < 0.01)  # braked, not on its way to neutral
+    assert res.summary["success"], res.summary["detail"]
