@@ -20,7 +20,7 @@ demo: $(STAMP)
 	$(VENV)/bin/psm up $(if $(CAMERA),--camera $(CAMERA))
 
 test: $(STAMP)
-	$(VENV)/bin/ruff check psm services tests benchmarks scripts
+	$(VENV)/bin/ruff check psm services tests benchmarks scripts experiments
 	$(PY) -m pytest -q -p no:cacheprovider
 
 bench: $(STAMP)
@@ -34,6 +34,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.feeding
 	$(PY) -m benchmarks.obstacles
 	$(PY) -m benchmarks.monitor
+	$(PY) -m benchmarks.acl
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache

@@ -402,6 +402,7 @@ def run_stack(offset: tuple[float, float], workdir: Path) -> dict[str, Any]:
         "stack.run_dir": j(str(run)),
         "recorder.output": j(str(workdir / "run.mcap")),
         "planner.summary_file": j(str(run / "task_summary.json")),
+        "planner.progress_file": j(str(run / "task_progress.json")),
         "arm.stats_file": j(str(run / "arm_stats.json")),
         "planner.cache_dir": j(str(CACHE_DIR)),
         "planner.task_file": j(str(task_file)),

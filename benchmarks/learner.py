@@ -68,7 +68,9 @@ FloatArray = NDArray[np.float64]
 #: (the accuracy the segmentation reaches when the parameter count is not capped);
 #: ``psm_precise``: ``auto_tolerance`` 2e-4 with up to 64 segments per dimension and 2 ms smoothing
 #: (LASA is noise-free; the 20 ms default alone moves the path about as far from demo 0 as
-#: DMP-50's whole error): what it takes for the PSM's path to match DMP-50's.
+#: DMP-50's whole error): what it takes for the PSM's path to match DMP-50's; ``psm_ext``:
+#: defaults plus the velocity-extremum via-points (``velocity_extrema=True``: speed peaks and dips
+#: kept with the unsmoothed demonstration's velocity).
 PSM_VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "psm": ({}, {}),
     "psm_paper": ({}, {"sync_mode": "brake"}),
@@ -77,6 +79,7 @@ PSM_VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "psm_budget": ({"auto_tolerance": 1e-3, "max_segments": 12}, {}),
     "psm_fine": ({"auto_tolerance": 1e-3, "max_segments": 32}, {}),
     "psm_precise": ({"auto_tolerance": 2e-4, "max_segments": 64, "smoothing": 0.002}, {}),
+    "psm_ext": ({"velocity_extrema": True}, {}),
 }
 PSM_NUMBERS_PER_SEGMENT = 4
 #: Methods of the per-shape tables (the other PSM configurations get a table of their own).
@@ -90,6 +93,7 @@ METHOD_LABELS: dict[str, str] = {
     "psm_budget": "PSM-≤50",
     "psm_fine": "PSM-fine",
     "psm_precise": "PSM-precise",
+    "psm_ext": "PSM-ext",
     "dmp10": "DMP-10",
     "dmp50": "DMP-50",
 }
@@ -156,12 +160,14 @@ class Demo:
 
 @dataclass
 class Run:
-    """A generated trajectory: ``t (N,)`` [s], ``x (N, D)``; ``done`` = goal reached."""
+    """A generated trajectory: ``t (N,)`` [s], ``x (N, D)``; ``done`` = goal reached; ``v (N, D)``
+    [unit/s] the velocities when the learner gives them (the PSM rollout does)."""
 
     t: FloatArray
     x: FloatArray
     done: bool
     wall_s: float
+    v: FloatArray | None = None
 
 
 # ---------------------------------------------------------------------------- data
@@ -205,11 +211,15 @@ def fit_psm(demo: Demo, **options: Any) -> Any:
 
 
 def run_psm(model: Any, x0: FloatArray, dt: float, max_duration: float, **options: Any) -> Run:
-    """PSM rollout from rest at ``x0`` towards the learned goal, time step ``dt`` [s]."""
+    """PSM rollout from rest at ``x0`` towards the learned goal, time step ``dt`` [s]; ``options``
+    go to ``PhaseSpaceModel.rollout`` (``goal_fn``, ``disturbance``, synchronisation options)."""
     t0 = time.perf_counter()
     r = model.rollout(x0, v0=None, goal=None, dt=dt, max_duration=max_duration, **options)
     wall = time.perf_counter() - t0
-    return Run(t=np.asarray(r.t, float), x=np.asarray(r.x, float), done=bool(r.done), wall_s=wall)
+    return Run(
+        t=np.asarray(r.t, float), x=np.asarray(r.x, float), done=bool(r.done), wall_s=wall,
+        v=np.asarray(r.v, float),
+    )
 
 
 def make_dmp(n_dims: int, execution_time: float, dt: float, n_weights: int) -> Any:
@@ -698,9 +708,10 @@ def time_interleaved(
     return {k: _percentiles(v) for k, v in samples.items()}
 
 
-def _interleaved_median_times(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, float]:
-    """Median wall time [s] per function; calls alternate between the functions, after one
-    untimed warm-up call each."""
+def interleaved_times(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, list[float]]:
+    """Wall time [s] of each of ``repeats`` calls per function; the calls alternate between the
+    functions (so load drifts on a shared machine hit them alike), after one untimed warm-up
+    call each."""
     for fn in fns.values():
         fn()
     times: dict[str, list[float]] = {k: [] for k in fns}
@@ -709,7 +720,12 @@ def _interleaved_median_times(fns: dict[str, Callable[[], Any]], repeats: int) -
             t0 = time.perf_counter()
             fn()
             times[name].append(time.perf_counter() - t0)
-    return {k: statistics.median(v) for k, v in times.items()}
+    return times
+
+
+def _interleaved_median_times(fns: dict[str, Callable[[], Any]], repeats: int) -> dict[str, float]:
+    """Median wall time [s] per function of :func:`interleaved_times`."""
+    return {k: statistics.median(v) for k, v in interleaved_times(fns, repeats).items()}
 
 
 def speed_benchmark(
@@ -803,6 +819,163 @@ def speed_benchmark(
     return out
 
 
+# ---------------------------------------------------------------------------- arm recordings
+
+#: The committed arm demonstrations (``scripts/make_demos.py``).
+DEMOS_DIR = Path(__file__).resolve().parents[1] / "data" / "demos"
+#: The strike demonstration: slow approach, touch of the cylinder at 0.05 m/s, push to 0.5 m/s
+#: along +y, stop (``services/arm/demos.py``).
+STRIKE_DEMO = "cylinder_strike"
+#: Offsets [m] of the strike's starts from the demonstrated start (0.45, −0.35, 0.15) m: the
+#: demonstrated start itself, 3 cm to either side in x, 3 cm farther back in y, 3 cm higher.
+STRIKE_START_OFFSETS: tuple[tuple[float, float, float], ...] = (
+    (0.0, 0.0, 0.0),
+    (0.03, 0.0, 0.0),
+    (-0.03, 0.0, 0.0),
+    (0.0, -0.03, 0.0),
+    (0.0, 0.0, 0.03),
+)
+#: Target: the speed along y at the strike of the PSM with the velocity-extremum via-points
+#: (``psm_ext``) within this fraction of the demonstrated one.
+STRIKE_TARGET_FRACTION = 0.02
+#: Learners of the strike and recordings sections: PSM configurations (fit options) and DMPs.
+ARM_PSM: dict[str, dict[str, Any]] = {"psm": {}, "psm_ext": {"velocity_extrema": True}}
+ARM_METHODS: tuple[str, ...] = (*ARM_PSM, "dmp10", "dmp50")
+
+
+def strike_positions() -> dict[str, float]:
+    """The strike's demonstrated states along y [m], from the scene of ``configs/feeding.toml``:
+    ``touch`` = the cylinder's contact point (guided at 0.05 m/s), ``strike`` = the end of the
+    push (guided at 0.5 m/s)."""
+    from services.arm.demos import STRIKE_PUSH
+    from services.tasks.feeding import load_feeding
+
+    y_touch = float(load_feeding().scene.cylinder_contact[1])
+    return {"strike": y_touch + STRIKE_PUSH, "touch": y_touch}
+
+
+def speed_at(x: FloatArray, v: FloatArray, y: float, axis: int = 1) -> float | None:
+    """Velocity [m/s] along ``axis`` where the path ``x (N, D)`` [m] first crosses ``x[axis] = y``
+    [m] moving up, linearly interpolated between the two samples around the crossing from the
+    velocities ``v (N, D)`` [m/s]; ``None`` if it never crosses."""
+    q = x[:, axis]
+    j = np.flatnonzero((q[:-1] < y) & (q[1:] >= y))
+    if j.size == 0:
+        return None
+    i = int(j[0])
+    w = (y - q[i]) / (q[i + 1] - q[i])
+    return float((1.0 - w) * v[i, axis] + w * v[i + 1, axis])
+
+
+def _arm_learners(t: FloatArray, X: FloatArray, dt: float) -> dict[str, Callable[[FloatArray], Run]]:
+    """Per method of :data:`ARM_METHODS`: fitted to ``t (T,)`` [s], ``X (T, 3)`` [m], a function
+    running it from ``x0 (3,)`` at the step ``dt`` [s] (velocity: the PSM's own, the DMP's by
+    central differences of its positions, both in ``Run.v``); ``wall_s`` is not measured (0)."""
+    from psm import PhaseSpaceModel
+
+    demo = Demo(t=t, x=X)
+    learners: dict[str, Callable[[FloatArray], Run]] = {}
+    for name, options in ARM_PSM.items():
+        model = PhaseSpaceModel.fit(t, X, **options)
+
+        def run_p(x0: FloatArray, model: Any = model) -> Run:
+            r = model.rollout(x0, dt=dt, max_duration=PSM_MAX_DURATION_FACTOR * demo.duration)
+            return Run(t=r.t, x=r.x, done=bool(r.done), wall_s=0.0, v=r.v)
+
+        learners[name] = run_p
+    for name, n_w in DMP_WEIGHTS.items():
+        dmp = fit_dmp(demo, n_w)
+
+        def run_d(x0: FloatArray, dmp: Any = dmp) -> Run:
+            run = run_dmp(dmp, x0)
+            run.v = np.gradient(run.x, run.t, axis=0)
+            return run
+
+        learners[name] = run_d
+    return learners
+
+
+def strike_benchmark(log: Callable[[str], None]) -> dict[str, Any]:
+    """Speed along y at the strike's demonstrated states (:func:`strike_positions`) from the
+    starts :data:`STRIKE_START_OFFSETS`, for every method of :data:`ARM_METHODS`, against the
+    demonstration's own (central differences of the unsmoothed recording)."""
+    from services.learn_cli import load_demonstration
+
+    t, X, _ = load_demonstration(DEMOS_DIR / f"{STRIKE_DEMO}.mcap")
+    t = t - t[0]
+    dt = float(np.median(np.diff(t)))
+    positions = strike_positions()
+    demo_v = np.gradient(X, t, axis=0)
+    demo_speed = {k: speed_at(X, demo_v, y) for k, y in positions.items()}
+    learners = _arm_learners(t, X, dt)
+    starts = [X[0] + np.asarray(o) for o in STRIKE_START_OFFSETS]
+    out: dict[str, Any] = {
+        "positions_y_m": positions,
+        "demo_speed_mps": demo_speed,
+        "starts_m": [s.tolist() for s in starts],
+        "target_fraction": STRIKE_TARGET_FRACTION,
+        "methods": {},
+    }
+    for method, run_fn in learners.items():
+        rows = []
+        for x0 in starts:
+            run = run_fn(x0)
+            row: dict[str, Any] = {"start": x0.tolist(), "done": run.done}
+            for key, y in positions.items():
+                sp = None if run.v is None else speed_at(run.x, run.v, y)
+                row[f"{key}_speed_mps"] = sp
+                ref = demo_speed[key]
+                row[f"{key}_ratio"] = None if sp is None or not ref else sp / ref
+            rows.append(row)
+        ratios = [r["strike_ratio"] for r in rows]
+        worst = None if None in ratios else max(abs(q - 1.0) for q in ratios)
+        out["methods"][method] = {
+            "runs": rows,
+            "strike_worst_deviation": worst,
+            "target_met": worst is not None and worst <= STRIKE_TARGET_FRACTION,
+        }
+        log(
+            f"strike {METHOD_LABELS[method]}: speed at y = {positions['strike']:+.2f} m / demo = "
+            + ", ".join("FAIL" if q is None else f"{q:.3f}" for q in ratios)
+        )
+    return out
+
+
+def recordings_benchmark(log: Callable[[str], None], quick: bool) -> dict[str, Any]:
+    """Reproduction of every committed arm recording (``data/demos/*.mcap``; quick: the first
+    two and the strike) from its own start, for every method of :data:`ARM_METHODS`: RMSE over
+    time, DTW and Fréchet [mm] (:func:`benchmarks.metrics.trajectory_metrics` on positions in mm)
+    and the PSM's segments per dimension."""
+    from psm import PhaseSpaceModel
+    from services.learn_cli import load_demonstration
+
+    paths = sorted(DEMOS_DIR.glob("*.mcap"))
+    if quick:
+        paths = [*paths[:2], *[p for p in paths[2:] if p.stem == STRIKE_DEMO]]
+    out: dict[str, Any] = {}
+    for path in paths:
+        t, X, _ = load_demonstration(path)
+        t = t - t[0]
+        dt = float(np.median(np.diff(t)))
+        learners = _arm_learners(t, X, dt)
+        entry: dict[str, Any] = {"duration_s": float(t[-1]), "methods": {}}
+        for method, run_fn in learners.items():
+            run = run_fn(X[0])
+            metrics = trajectory_metrics(run.t, 1e3 * run.x, t, 1e3 * X)
+            entry["methods"][method] = {**metrics, "done": run.done}
+        for method, options in ARM_PSM.items():
+            entry["methods"][method]["segments_per_dim"] = [
+                len(k) for k in PhaseSpaceModel.fit(t, X, **options).k
+            ]
+        out[path.stem] = entry
+        log(
+            f"recording {path.stem}: RMSE "
+            + ", ".join(f"{METHOD_LABELS[m]} {_fmt(entry['methods'][m]['rmse'])}" for m in ARM_METHODS)
+            + " mm"
+        )
+    return out
+
+
 # ---------------------------------------------------------------------------- report
 
 
@@ -846,7 +1019,9 @@ from demo 0's time stamps (`t[1] - t[0]`, 2.5–8 ms depending on the shape).
   max_segments=32`: the accuracy the segmentation reaches when the model may grow past DMP-50's
   size; *PSM-precise* = `auto_tolerance=2e-4, max_segments=64, smoothing=0.002`: what it takes
   for the PSM's path to match DMP-50's (LASA is noise-free, and the default 20 ms smoothing alone
-  moves the path about as far from demo 0 as DMP-50's whole error: median DTW 0.010 mm). The
+  moves the path about as far from demo 0 as DMP-50's whole error: median DTW 0.010 mm);
+  *PSM-ext* = defaults with `velocity_extrema=True` (each dimension's speed peaks and dips kept as
+  via-points with the unsmoothed demonstration's velocity). The
   *Model size* table gives the segment counts actually used.
 - *DMP*: `movement_primitives` 0.9.1 `DMP(n_dims=2, execution_time=demo duration, dt=dt,
   n_weights_per_dim=10 or 50)` with the library's default gains (α_y = 25, β_y = 6.25, no
@@ -1051,6 +1226,7 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
             f"{_fmt(la['ratio_run_s'])} (per sample {_fmt(la['ratio_run_per_sample_s'])}) |"
         )
         L.append("")
+    _arm_sections(report, L)
     for cond in CONDITIONS:
         L.append(f"## Per shape: {CONDITION_LABELS[cond]}")
         L.append("")
@@ -1166,6 +1342,64 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
     path.write_text("\n".join(L), encoding="utf-8")
 
 
+def _arm_sections(report: dict[str, Any], L: list[str]) -> None:
+    """The strike and arm-recording sections (appended to the markdown lines ``L``)."""
+    strike = report.get("strike")
+    if strike:
+        pos, demo = strike["positions_y_m"], strike["demo_speed_mps"]
+        L.append("## Strike: speed at the demonstrated states")
+        L.append("")
+        L.append(
+            f"`data/demos/{STRIKE_DEMO}.mcap` (learned with the defaults, and with the "
+            "velocity-extremum via-points as *PSM-ext*; DMP as for LASA, in metres, dt 2 ms), run "
+            "from the demonstrated start and four starts 3 cm away from it (offsets in m: "
+            + ", ".join("(" + ", ".join(f"{c:+.2f}" for c in o) + ")" for o in STRIKE_START_OFFSETS)
+            + "). Speed along y [m/s] where the path first crosses the position, against the "
+            "unsmoothed demonstration's (central differences) there: at the end of the push "
+            f"(y = {pos['strike']:+.2f} m, guided at 0.5 m/s; demonstrated "
+            f"{demo['strike']:.4f} m/s) and at the touch of the cylinder (y = {pos['touch']:+.2f} m, "
+            f"guided at 0.05 m/s; demonstrated {demo['touch']:.4f} m/s, of which the hand's "
+            "tremor moves about ±0.02 m/s at 8–12 Hz)."
+        )
+        L.append("")
+        L.append("| method | " + " | ".join(f"start {i}" for i in range(len(STRIKE_START_OFFSETS))) + " |")
+        L.append("|---" * (1 + len(STRIKE_START_OFFSETS)) + "|")
+        for key in ("strike", "touch"):
+            for method in ARM_METHODS:
+                cells = [
+                    "FAIL"
+                    if r[f"{key}_speed_mps"] is None
+                    else f"{r[f'{key}_speed_mps']:.4f} ({r[f'{key}_ratio']:.3f})"
+                    for r in strike["methods"][method]["runs"]
+                ]
+                L.append(f"| {METHOD_LABELS[method]}, y = {pos[key]:+.2f} m | " + " | ".join(cells) + " |")
+        L.append("")
+        L.append("Each cell: speed [m/s] (ratio to the demonstration's).")
+        L.append("")
+    recordings = report.get("recordings")
+    if recordings:
+        L.append("## Committed arm recordings: reproduction")
+        L.append("")
+        L.append(
+            "Each recording of `data/demos/` learned (PSM defaults, PSM-ext, DMP-10, DMP-50) and "
+            "run from its own start at its 2 ms step; RMSE over time, DTW and Fréchet in mm against "
+            "the unsmoothed recording (as for LASA). `segs`: PSM / PSM-ext segments per dimension. "
+            "Each metric cell: " + " / ".join(METHOD_LABELS[m] for m in ARM_METHODS) + "."
+        )
+        L.append("")
+        L.append("| recording | T [s] | segs | RMSE | DTW | Fréchet |")
+        L.append("|---|---|---|---|---|---|")
+        for name, entry in recordings.items():
+            ms = entry["methods"]
+            segs = " / ".join("+".join(str(n) for n in ms[m]["segments_per_dim"]) for m in ARM_PSM)
+            cells = [
+                " / ".join(_fmt(ms[m].get(metric)) for m in ARM_METHODS)
+                for metric in ("rmse", "dtw", "frechet")
+            ]
+            L.append(f"| {name} | {entry['duration_s']:.2f} | {segs} | " + " | ".join(cells) + " |")
+        L.append("")
+
+
 def _sampling_check_section(check: dict[str, Any] | None, L: list[str]) -> None:
     """The report's sampling check: reproduction DTW/Fréchet on raw samples vs on curves
     resampled along their length (appended to the markdown lines ``L``)."""
@@ -1224,9 +1458,24 @@ def _ms(v: float | None) -> str:
     return "FAIL" if v is None else f"{v * 1e3:.2f} ms"
 
 
-def build_targets(agg: dict[str, Any], speed: dict[str, Any] | None) -> list[dict[str, Any]]:
-    """The three targets of the acceptance list, evaluated on this run."""
+def build_targets(
+    agg: dict[str, Any], speed: dict[str, Any] | None, strike: dict[str, Any] | None = None
+) -> list[dict[str, Any]]:
+    """The targets of the acceptance list, evaluated on this run."""
     targets: list[dict[str, Any]] = []
+    if strike:
+        psm = strike["methods"]["psm_ext"]
+        ratios = [r["strike_ratio"] for r in psm["runs"]]
+        targets.append(
+            {
+                "target": "strike: PSM-ext (velocity_extrema=True) speed along y at "
+                f"y = {strike['positions_y_m']['strike']:+.2f} m "
+                f"within {100 * strike['target_fraction']:g} % of the demonstration's, from every start",
+                "measured": "PSM-ext / demo = "
+                + ", ".join("FAIL" if q is None else f"{q:.3f}" for q in ratios),
+                "met": bool(psm["target_met"]),
+            }
+        )
     if speed:
         for key, row in speed["step"].items():
             targets.append(
@@ -1334,6 +1583,7 @@ def run_benchmark(
     quick: bool = False,
     speed: bool = True,
     log: Callable[[str], None] = print,
+    arm: bool = True,
 ) -> dict[str, Any]:
     """Run the whole benchmark and write learner.md / learner.json / learner_lasa.png.
 
@@ -1343,6 +1593,7 @@ def run_benchmark(
         quick: fewer shapes, 2 other starts instead of 6, fewer repeats and step calls.
         speed: run the speed section.
         log: progress printer.
+        arm: run the arm-recording sections (the strike's speeds, the recordings' reproduction).
 
     Returns:
         The report dict (same content as learner.json).
@@ -1377,6 +1628,8 @@ def run_benchmark(
         )
     agg = aggregate(results)
     speed_res = speed_benchmark(quick, results, log) if speed else None
+    strike_res = strike_benchmark(log) if arm else None
+    recordings_res = recordings_benchmark(log, quick) if arm else None
     report: dict[str, Any] = {
         "meta": {
             "generated_utc": datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC"),
@@ -1394,8 +1647,10 @@ def run_benchmark(
         "shapes": results,
         "aggregate": agg,
         "speed": speed_res,
+        "strike": strike_res,
+        "recordings": recordings_res,
     }
-    report["targets"] = build_targets(agg, speed_res)
+    report["targets"] = build_targets(agg, speed_res, strike_res)
     report["meta"]["wall_s"] = time.perf_counter() - t_start
     report = _json_ready(report)
     (out_dir / "learner.json").write_text(json.dumps(report, indent=1), encoding="utf-8")
@@ -1428,8 +1683,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="output directory (default: benchmarks/results)",
     )
     parser.add_argument("--no-speed", action="store_true", help="skip the speed section")
+    parser.add_argument(
+        "--no-arm", action="store_true", help="skip the strike and arm-recording sections"
+    )
     args = parser.parse_args(argv)
-    run_benchmark(args.out, shapes=args.shapes, quick=args.quick, speed=not args.no_speed)
+    run_benchmark(
+        args.out, shapes=args.shapes, quick=args.quick, speed=not args.no_speed, arm=not args.no_arm
+    )
     return 0
 
 

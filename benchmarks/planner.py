@@ -783,6 +783,7 @@ def stack_overrides(workdir: Path, port: int) -> dict[str, str]:
         "stack.run_dir": j(str(workdir)),
         "recorder.output": j(str(workdir / "run.mcap")),
         "planner.summary_file": j(str(workdir / "task_summary.json")),
+        "planner.progress_file": j(str(workdir / "task_progress.json")),
         "planner.cache_dir": j(str(CACHE_DIR)),
         "arm.stats_file": j(str(workdir / "arm_stats.json")),
     }

@@ -9,6 +9,10 @@ Pipeline for each dimension of a demonstration ``t (T,) [s]``, ``X (T, D)``:
    time (``segments=N``), the user's cut times, or ``"auto"`` (:func:`_auto_cuts`): top-down
    splitting at the point that minimises the piecewise-linear fit error in the position–acceleration
    plane, until every segment's PSTF stays within a position tolerance of the demonstration;
+   before any of these, the significant velocity extrema of each dimension
+   (:func:`velocity_extremum_points`) and the user's ``via_point_times`` become via-points that keep the
+   velocity of the unsmoothed demonstration there (:class:`RawDemo`), so that the motion passes
+   those positions at the demonstrated speeds;
 4. per segment: ``ẍ = c₀ + k (x − m)`` with ``c₀`` fixed by the boundary velocities (corrected eq. 5)
    and ``k`` by ``k_fit``: the demonstrated duration (default) or closed-form least squares, clamped
    below the stability bound (:mod:`psm.pstf`).
@@ -67,6 +71,72 @@ class SmoothedDemo:
     v: NDArray[np.float64]
     a: NDArray[np.float64]
     dt: float
+
+
+#: The velocity of a task via-point is read from the unsmoothed demonstration over the narrowest
+#: window whose noise leaves at most this fraction of the demonstration's top speed as error
+#: (:meth:`RawDemo.velocity`).
+RAW_VELOCITY_NOISE = 0.01
+#: The noise of the unsmoothed samples at a task via-point is estimated from the samples within
+#: this many of it on either side.
+RAW_NOISE_SAMPLES = 256
+
+
+@dataclass(frozen=True)
+class RawDemo:
+    """The demonstration before smoothing, for the velocities of the task via-points (velocity
+    extrema and the user's): ``t (T,)`` [s] uniform from 0, ``x (T, D)`` [unit];
+    ``speed_scale`` [unit/s] the demonstration's top speed and ``max_window`` [s] the widest
+    half-window :meth:`velocity` may use (the smoothing sigma)."""
+
+    t: NDArray[np.float64]
+    x: NDArray[np.float64]
+    speed_scale: float
+    max_window: float
+
+    def half_window(self, i: int, d: int) -> int:
+        """The half-width ``n`` [samples] of the line fit of :meth:`velocity` at sample ``i`` of
+        dimension ``d``: the least-squares slope over ``2n + 1`` samples of white noise of
+        deviation ``s`` has the deviation ``s / (dt √(Σ j²))``, ``Σ j² = n (n + 1)(2n + 1)/3``
+        over ``j = −n..n``. ``s`` is :func:`noise_level` of the unsmoothed samples within
+        :data:`RAW_NOISE_SAMPLES` of ``i``; ``n`` is the smallest that brings the deviation to
+        :data:`RAW_VELOCITY_NOISE` of ``speed_scale`` (1 on clean data: the central difference),
+        at most ``max_window / dt``."""
+        T = self.t.shape[0]
+        dt = float(self.t[1] - self.t[0])
+        cap = max(1, math.floor(self.max_window / dt + 1e-9))
+        target = RAW_VELOCITY_NOISE * self.speed_scale * dt
+        if cap == 1 or not target > 0.0:
+            return 1
+        lo, hi = max(0, i - RAW_NOISE_SAMPLES), min(T, i + RAW_NOISE_SAMPLES + 1)
+        s = float(noise_level(self.x[lo:hi, d : d + 1])[0])
+        need = (s / target) ** 2  # Σ j² needed
+        n = 1
+        while n < cap and n * (n + 1) * (2 * n + 1) / 3.0 < need:
+            n += 1
+        return n
+
+    def velocity(self, times: NDArray, d: int) -> NDArray[np.float64]:
+        """Velocity [unit/s] of dimension ``d`` at ``times (n,)`` [s]: the slope of the
+        least-squares line through the unsmoothed samples within :meth:`half_window` samples of
+        each time (the central difference on clean data). ``(n,)``.
+
+        Unlike the smoothed velocity it does not round a speed peak off: a line fit over a
+        symmetric window of half-width ``w`` is exact for a locally quadratic motion, and at a
+        speed extremum (locally cubic, ``x = v₀τ + cτ³``) it reads ``v₀ + (3/5) c w²``, where a
+        Gaussian of sigma ``σ`` reads ``v₀ + 3 c σ²``."""
+        t, x = self.t, self.x[:, d]
+        dt = float(t[1] - t[0])
+        out = np.empty(len(times))
+        for i, tc in enumerate(np.asarray(times, dtype=float).tolist()):
+            half = self.half_window(min(t.shape[0] - 1, max(0, round(tc / dt))), d) * dt
+            lo = max(0, int(np.searchsorted(t, tc - half - 1e-6 * dt)))
+            hi = min(t.shape[0], int(np.searchsorted(t, tc + half + 1e-6 * dt, side="right")))
+            if hi - lo < 2:  # at an end: the two samples nearest to it
+                lo, hi = (0, 2) if lo == 0 else (t.shape[0] - 2, t.shape[0])
+            tau = t[lo:hi] - t[lo:hi].mean()
+            out[i] = float(np.dot(tau, x[lo:hi]) / np.dot(tau, tau))
+        return out
 
 
 @dataclass(frozen=True)
@@ -310,6 +380,24 @@ def turning_points(x: NDArray, tolerance: float) -> list[int]:
 #: A direction reversal must exceed this many times the noise level of its dimension
 #: (:func:`noise_level`) to become a cut.
 REVERSAL_NOISE_FACTOR = 8.0
+#: A velocity extremum is a via-point when the velocity swings back from it by at least this
+#: fraction of the demonstration's top speed (:func:`velocity_extremum_points`). The tremor of the
+#: committed arm recordings swings their 20 ms-smoothed velocities by up to about 15 % of their
+#: top speeds; from 15–20 % on, the extrema found are those of the guided motion.
+VELOCITY_EXTREMUM_PROMINENCE = 0.2
+
+
+def velocity_extremum_points(v: NDArray, tolerance: float) -> list[int]:
+    """Indices of the significant interior extrema of the velocity ``v (T,)`` [unit/s] of one
+    dimension: the speed peak of each stroke and the dips between strokes.
+
+    :func:`turning_points` on the velocity with the hysteresis ``tolerance`` [unit/s]: an
+    extremum counts once the velocity has come back from it by ``tolerance``, so the wiggles that
+    noise or tremor leave on a smoothed velocity are not extrema; the first and the last sample
+    never are. ``[]`` when ``tolerance`` is not a positive number."""
+    if not tolerance > 0.0:
+        return []
+    return turning_points(v, tolerance)
 
 
 def noise_level(x: NDArray) -> NDArray:
@@ -740,6 +828,61 @@ def _auto_cuts(
     return [gr.cuts for gr in greedy]
 
 
+def check_via_point_times(times: Sequence[float] | None, duration: float) -> list[float]:
+    """``via_point_times`` [s] as a sorted list; raises :class:`ParameterError` naming the field
+    unless every time is finite and strictly inside ``(0, duration)`` [s] and none repeats."""
+    if times is None:
+        return []
+    try:
+        arr = np.asarray(times, dtype=float)
+    except (TypeError, ValueError):
+        raise ParameterError(f"via_point_times must be a list of times in s, got {times!r}") from None
+    if arr.ndim != 1:
+        raise ParameterError(f"via_point_times must be a list of times in s, got shape {arr.shape}")
+    bad = ~np.isfinite(arr) | (arr <= 0.0) | (arr >= duration)
+    if bad.any():
+        raise ParameterError(
+            f"via_point_times must lie strictly inside (0, {duration:g}) s (the demonstration), "
+            f"got {float(arr[int(np.argmax(bad))]):g} s"
+        )
+    out = sorted(float(tc) for tc in arr)
+    if any(b == a for a, b in itertools.pairwise(out)):
+        raise ParameterError("via_point_times has the same time twice")
+    return out
+
+
+def task_via_points(
+    cuts: set[int],
+    user: Sequence[int],
+    extrema: Sequence[int],
+    x: NDArray,
+    min_samples: int,
+    min_delta: float,
+) -> list[int]:
+    """The via-points of one dimension that keep a demonstrated state, besides ``cuts`` (its ends
+    and reversals): the user's samples ``user``, then the velocity extrema ``extrema``.
+
+    A candidate is kept when it moves at least ``min_delta`` [unit] from the via-points already
+    kept on both sides of it (a dimension at rest there has no state to keep: the segment would
+    have no length); a velocity extremum must also lie at least ``min_samples`` samples from
+    them (a user's point is kept however close). ``x (T,)``. Returns the kept samples, sorted."""
+    kept = sorted(cuts)
+    added: list[int] = []
+    for group, spacing in ((user, 0), (extrema, min_samples)):
+        for c in group:
+            i = int(np.searchsorted(kept, c))
+            if i == 0 or i == len(kept) or kept[i] == c:
+                continue
+            lo, hi = kept[i - 1], kept[i]
+            if c - lo < max(spacing, 1) or hi - c < max(spacing, 1):
+                continue
+            if abs(x[c] - x[lo]) < min_delta or abs(x[hi] - x[c]) < min_delta:
+                continue
+            kept.insert(i, c)
+            added.append(c)
+    return sorted(added)
+
+
 def _merge_short(cuts: list[int], fixed: set[int], x: NDArray, min_delta: float) -> list[int]:
     """Drop optional cuts that leave a segment moving less than ``min_delta`` [unit]."""
     out = [cuts[0]]
@@ -806,6 +949,10 @@ def fit_dimensions(
     min_speed_ratio: float,
     min_segment_samples: int,
     k_fit: str,
+    *,
+    raw: RawDemo | None = None,
+    extremum_tolerance: float | None = None,
+    via_point_times: Sequence[float] = (),
 ) -> list[DimensionFit]:
     """Learn the PSTF chain of every dimension from smoothed samples ``x, v, a (T, D)``.
 
@@ -815,6 +962,11 @@ def fit_dimensions(
     reversals are added as cuts), or a sequence of cut times [s] from the demonstration's start.
     A dimension whose range is below ``hold_tolerance`` [unit] becomes one rest-to-rest hold.
     ``k_fit``: one of :data:`K_FIT_MODES`.
+    Task via-points (:func:`task_via_points`), kept whatever ``segments`` says, with the velocity
+    of ``raw`` (``None``: the smoothed ``v``): the velocity extrema of every moving dimension with
+    the hysteresis ``extremum_tolerance`` [unit/s], at least 8 times the noise left in the
+    velocity (:func:`velocity_extremum_points`; ``None``: none), and the samples nearest to
+    ``via_point_times`` [s] (checked by :func:`check_via_point_times`).
     """
     T, D = x.shape
     duration = float(demo_t[-1])
@@ -828,11 +980,26 @@ def fit_dimensions(
     # A reversal smaller than the noise left in a dimension is noise (a demonstration learned
     # with little or no smoothing would otherwise get a cut at every wiggle).
     reversal_tolerance = np.maximum(hold_tolerance, REVERSAL_NOISE_FACTOR * noise_level(x))
+    user = sorted({min(T - 1, max(0, round(tc / dt))) for tc in via_point_times})
+    # A velocity swing smaller than the noise left in the velocity is noise, as for reversals.
+    extremum_tol = (
+        np.maximum(extremum_tolerance, REVERSAL_NOISE_FACTOR * noise_level(v))
+        if extremum_tolerance
+        else np.zeros(D)
+    )
     for d in range(D):
         if not holds[d]:
             turns = turning_points(x[:, d], float(reversal_tolerance[d]))
             fixed[d] = {0, T - 1, *turns}
             v_knot[turns, d] = 0.0
+            extrema = velocity_extremum_points(v[:, d], float(extremum_tol[d]))
+            task = task_via_points(fixed[d], user, extrema, x[:, d], min_segment_samples, hold_tolerance)
+            if task:
+                fixed[d].update(task)
+                if raw is None:
+                    v_knot[task, d] = v[task, d]
+                else:
+                    v_knot[task, d] = raw.velocity(demo_t[task], d)
     if not fixed:  # nothing moves (segments is not even looked at, as for one hold dimension)
         return [_hold(x[:, d], duration) for d in range(D)]
     samples = _Samples(demo_t, x, v_knot, a, dt, min_speed_ratio)

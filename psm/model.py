@@ -25,11 +25,25 @@ from numpy.typing import ArrayLike, NDArray
 
 from psm.controller import DimensionChain, PSMController, validate_sync
 from psm.errors import ModelFileError, ParameterError, ShapeError
-from psm.fitting import K_FIT_MODES, DimensionFit, fit_dimensions, fit_grid, smooth, validate_demonstration
+from psm.fitting import (
+    K_FIT_MODES,
+    VELOCITY_EXTREMUM_PROMINENCE,
+    DimensionFit,
+    RawDemo,
+    check_via_point_times,
+    fit_dimensions,
+    fit_grid,
+    smooth,
+    validate_demonstration,
+)
 
 #: Identifies a saved model file; bump :data:`FORMAT_VERSION` on any incompatible change.
 FORMAT_NAME = "psm-model"
-FORMAT_VERSION = 1
+#: Version 2 added the parameters ``velocity_extrema`` and ``via_point_times`` (the fit keeps
+#: demonstrated states as via-points); version 1 files load as fitted without them.
+FORMAT_VERSION = 2
+#: The versions :meth:`PhaseSpaceModel.from_dict` reads.
+READABLE_VERSIONS = (1, 2)
 
 GoalFn = Callable[[float], ArrayLike]
 Disturbance = Callable[[float, NDArray[np.float64], NDArray[np.float64]], tuple[ArrayLike, ArrayLike]]
@@ -65,9 +79,13 @@ class ModelParameters:
       ``sync_time`` [s]: the lead at which ``"scale"`` holds a dimension still;
     * ``start_retime``: the segment the motion starts in keeps its nominal duration from any
       start; ``start_shift``: via-points are displaced by the start's offset from the demonstrated
-      start, fading to nothing at the goal (see docs/psm.md, "Running").
-    Files written before the last four existed load as ``"brake"``, 0.1 s, off, off: they run as
-    they did.
+      start, fading to nothing at the goal (see docs/psm.md, "Running");
+    * ``velocity_extrema``: the significant velocity extrema of every dimension were kept as
+      via-points with the unsmoothed demonstration's velocity, and ``via_point_times`` [s] the
+      demonstration times of the user's via-points (see docs/psm.md, "Via-points").
+    Files written before the ``sync_mode`` … ``start_shift`` parameters existed load as
+    ``"brake"``, 0.1 s, off, off: they run as they did; version 1 files, before the last two, as
+    fitted without velocity extrema and user via-points (as they were).
     """
 
     smoothing: float
@@ -86,6 +104,8 @@ class ModelParameters:
     sync_time: float = 0.1
     start_retime: bool = False
     start_shift: bool = False
+    velocity_extrema: bool = False
+    via_point_times: list[float] = field(default_factory=list)
 
 
 @dataclass
@@ -173,6 +193,8 @@ class PhaseSpaceModel:
         velocity_tolerance: float = 1e-3,
         k_fit: str = "duration",
         max_acceleration: float | ArrayLike | None = None,
+        velocity_extrema: bool = False,
+        via_point_times: Sequence[float] | None = None,
     ) -> PhaseSpaceModel:
         """Learn a model from ONE demonstration.
 
@@ -191,6 +213,14 @@ class PhaseSpaceModel:
         ``sync_gain``, ``sync_mode``, ``sync_time``, ``start_retime`` and ``start_shift`` are the
         controller's defaults, stored with the model (see :class:`ModelParameters`; ``sync_mode``
         ``"brake"`` is the paper's eq. 14).
+        ``velocity_extrema``: keep each dimension's significant velocity extrema (speed peaks
+        and dips from which the velocity swings back by 20 % of the demonstration's top speed,
+        :func:`psm.fitting.velocity_extremum_points`) as via-points;
+        ``via_point_times``: demonstration times [s] from its first sample, strictly inside the
+        demonstration, of via-points every moving dimension must keep (task points: where a
+        tool must touch, strike or release). Both keep the velocity of the unsmoothed
+        demonstration there (:meth:`psm.fitting.RawDemo.velocity`), so that the motion passes
+        those positions at the demonstrated velocities (docs/psm.md, "Via-points").
         Raises :class:`psm.PSMError` subclasses on invalid input.
         """
         t_arr, X_arr = validate_demonstration(t, X)
@@ -210,6 +240,7 @@ class PhaseSpaceModel:
             raise ParameterError(f"k_fit must be one of {K_FIT_MODES}, got {k_fit!r}")
         if int(max_segments) < 1:
             raise ParameterError(f"max_segments must be >= 1, got {max_segments}")
+        task_times = check_via_point_times(via_point_times, float(t_arr[-1]))
         demo = smooth(t_arr, X_arr, float(smoothing))
         D = X_arr.shape[1]
         scale = float(np.max(np.ptp(demo.x, axis=0)))
@@ -219,6 +250,7 @@ class PhaseSpaceModel:
             scale = 1.0
         grid = fit_grid(demo, float(smoothing))
         min_samples = max(3, round(float(smoothing) / grid.dt))
+        top_speed = float(np.max(np.abs(grid.v)))  # [unit/s], over every dimension
         fits = fit_dimensions(
             grid.t, grid.x, grid.v, grid.a, grid.dt, segments,
             hold_tolerance=hold_tolerance * scale,
@@ -227,6 +259,9 @@ class PhaseSpaceModel:
             min_speed_ratio=float(min_speed_ratio),
             min_segment_samples=min_samples,
             k_fit=k_fit,
+            raw=RawDemo(t_arr, X_arr, speed_scale=top_speed, max_window=float(smoothing)),
+            extremum_tolerance=VELOCITY_EXTREMUM_PROMINENCE * top_speed if velocity_extrema else None,
+            via_point_times=task_times,
         )
         if wrong_way_accel is None:
             # Isotropic: the largest |acceleration| demonstrated in any dimension. A per-dimension
@@ -264,6 +299,8 @@ class PhaseSpaceModel:
             sync_time=float(sync_time),
             start_retime=bool(start_retime),
             start_shift=bool(start_shift),
+            velocity_extrema=bool(velocity_extrema),
+            via_point_times=task_times,
         )
         # Goal and start are the demonstrated end points themselves (smoothing biases the ends
         # of a motion that is still settling); via-points are relative to the goal.
@@ -500,9 +537,10 @@ class PhaseSpaceModel:
         """Rebuild a model from :meth:`to_dict` output; raises :class:`ModelFileError` when invalid."""
         if not isinstance(data, dict) or data.get("format") != FORMAT_NAME:
             raise ModelFileError(f"not a PSM model (expected format '{FORMAT_NAME}')")
-        if data.get("version") != FORMAT_VERSION:
+        if data.get("version") not in READABLE_VERSIONS:
             raise ModelFileError(
-                f"unsupported model version {data.get('version')!r} (this build reads {FORMAT_VERSION})"
+                f"unsupported model version {data.get('version')!r} (this build reads "
+                f"{', '.join(map(str, READABLE_VERSIONS))})"
             )
         try:
             dims = data["dimensions"]

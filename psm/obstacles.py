@@ -79,7 +79,15 @@ REASON_NAN = "nan"
 REASON_SIZE = "size"
 REASON_ORIENTATION = "orientation"
 REASON_DIMS = "dims"
-REASONS: tuple[str, ...] = (REASON_ID, REASON_SHAPE, REASON_NAN, REASON_SIZE, REASON_ORIENTATION, REASON_DIMS)
+REASON_RANGE = "range"
+REASONS: tuple[str, ...] = (
+    REASON_ID, REASON_SHAPE, REASON_NAN, REASON_SIZE, REASON_ORIENTATION, REASON_DIMS, REASON_RANGE
+)
+
+#: Positions and sizes beyond this [m], speeds beyond :data:`MAX_SPEED_MPS`, are not a robot
+#: cell's obstacles (finite, but e.g. 1e308: the geometry would overflow): rejected as "range".
+MAX_EXTENT_M = 1000.0
+MAX_SPEED_MPS = 100.0
 
 #: A quaternion whose norm differs from 1 by more than this is rejected (else it is normalised).
 QUAT_NORM_TOL = 1e-3
@@ -154,6 +162,10 @@ class Obstacle:
         norm = float(np.linalg.norm(quat))
         if abs(norm - 1.0) > QUAT_NORM_TOL:
             raise ObstacleError(REASON_ORIENTATION, "orientation", f"quaternion norm {norm:.6g} is not 1")
+        if max(float(np.abs(position).max()), float(np.abs(size).max())) > MAX_EXTENT_M:
+            raise ObstacleError(REASON_RANGE, "position", f"position or size beyond {MAX_EXTENT_M:g} m")
+        if float(np.linalg.norm(velocity)) > MAX_SPEED_MPS:
+            raise ObstacleError(REASON_RANGE, "velocity", f"speed beyond {MAX_SPEED_MPS:g} m/s")
         used = {"box": (0, 1, 2), "sphere": (0,), "cylinder": (0, 2)}[self.shape]
         if any(size[i] <= 0.0 for i in used):
             raise ObstacleError(REASON_SIZE, "size", f"{self.shape} size {size.tolist()} must be > 0")

@@ -24,6 +24,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.goal_tracker.cli",
     "services.planner.cli",
     "services.obstacle_monitor.cli",
+    "services.compose",
+    "experiments.cli",
 )
 
 

@@ -182,6 +182,10 @@ def _segments_arg(text: str) -> str | int | list[float]:
     return int(text)
 
 
+def _times_arg(text: str) -> list[float]:
+    return [float(v) for v in text.split(",")]
+
+
 def cmd_learn(args: argparse.Namespace) -> int:
     """``psm learn DEMO -o MODEL``."""
     t, X, names = load_demonstration(Path(args.demo), args.columns, args.topic)
@@ -195,6 +199,8 @@ def cmd_learn(args: argparse.Namespace) -> int:
             ("auto_tolerance", args.auto_tolerance),
             ("sync_mode", args.sync),
             ("start_shift", args.start_shift or None),
+            ("velocity_extrema", args.velocity_extrema or None),
+            ("via_point_times", args.via_points),
         )
         if value is not None
     }
@@ -315,6 +321,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    f"(the paper's eq. 14) (default {default['sync_mode']})")
     p.add_argument("--start-shift", action="store_true",
                    help="spread a start offset over the motion (fading to 0 at the goal)")
+    p.add_argument("--via-points", type=_times_arg, metavar="T1,T2,..",
+                   help="demonstration times [s] of via-points to keep with the demonstrated velocity")
+    p.add_argument("--velocity-extrema", action="store_true",
+                   help="keep the demonstration's speed peaks and dips as via-points")
     p.add_argument("--columns", nargs="+", help="CSV columns to learn (default: all but t)")
     p.add_argument("--topic", help="MCAP: arm-state topic (default <prefix>/arm/state)")
     p.add_argument("--plot", help="also write a reproduction plot (PNG)")

@@ -36,7 +36,7 @@ import importlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import Field
 
@@ -86,6 +86,7 @@ COMMANDS: dict[tuple[str, ...], Command] = {
     ("arm",): Command("services.arm.config:ArmConfig", "arm"),
     ("arm", "probe"): Command("services.bus.config:ServiceConfig", "probe"),
     ("camera", "synth"): Command("services.goal_tracker.config:TrackerConfig", "camera_synth"),
+    ("camera", "stream"): Command("services.goal_tracker.config:TrackerConfig", "camera"),
     ("track",): Command("services.goal_tracker.config:TrackerConfig", "goal_tracker"),
     ("plan",): Command("services.planner.config:PlannerConfig", "planner"),
     ("obstacles",): Command("services.obstacle_monitor.config:ObstacleMonitorConfig", "obstacle_monitor"),
@@ -124,13 +125,43 @@ class ProcessSpec(Section):
     ends_stack: bool = Field(
         False, description="when this process exits with code 0 the whole stack stops (e.g. the task is done)"
     )
+    needs: StrList = Field(
+        default_factory=list,
+        description="processes (earlier in the list) that must be up before this one starts "
+        "(docker compose: depends_on ... service_healthy)",
+    )
+    cpus: float = Field(1.0, gt=0.0, le=64.0, description="container CPU limit (docker compose) [cores]")
+    memory_mb: int = Field(
+        1024, ge=64, le=1 << 20, description="container memory limit (docker compose) [MiB]"
+    )
+    restart: Literal["no", "on-failure", "always"] = Field(
+        "no",
+        description="restart the process when it exits: 'on-failure' after a non-zero exit code or a "
+        "signal, 'always' after any exit (as docker compose's restart policies)",
+    )
+    max_restarts: int = Field(
+        3, ge=0, le=1000, description="restarts allowed in one run; one more exit stops the stack"
+    )
+    required: bool = Field(
+        True,
+        description="false: the stack goes on without it when it exits and is not restarted (reported, and "
+        "psm up's exit code is 1), e.g. the recorder: a lost recording does not stop the robot",
+    )
 
     def check(self) -> None:
-        """The command is one a stack can run."""
+        """The command is one a stack can run; a process that ends the stack is not restarted
+        after its clean exit."""
         try:
             _command_of(self.command)
         except ValueError as exc:
             raise ConfigError("command", str(exc)) from None
+        if self.ends_stack and self.restart == "always":
+            raise ConfigError("restart", "a process with ends_stack = true cannot restart 'always'")
+
+    @property
+    def is_router(self) -> bool:
+        """Whether the process is a zenoh router (``psm serve router``)."""
+        return tuple(self.command[:2]) == ("serve", "router")
 
     @property
     def service_name(self) -> str:
@@ -150,14 +181,35 @@ class StackSection(Section):
         10.0, gt=0.0, le=600.0, description="after SIGTERM, wait this long before SIGKILL [s]"
     )
     run_dir: str = Field("out/stack", description="process logs go to <run_dir>/<name>.log")
+    access_control: bool = Field(
+        False,
+        description="run the bus with authentication and access control: psm up writes the "
+        "credentials into <run_dir>/secrets, the router allows each process only what its "
+        "role needs (the role is the process's name; docs/security.md)",
+    )
 
     def check(self) -> None:
-        """Process names are unique."""
+        """Process names are unique; a process needs only processes listed before it; with
+        access control each process but the router is a role."""
+        from services.bus.acl import ROLE_NAMES
+
         seen: set[str] = set()
         for i, p in enumerate(self.processes):
             if p.name in seen:
                 raise ConfigError(f"processes[{i}].name", f"duplicate process name {p.name!r}")
+            for need in p.needs:
+                if need not in seen:
+                    raise ConfigError(
+                        f"processes[{i}].needs",
+                        f"{need!r} is not a process listed before {p.name!r}",
+                    )
             seen.add(p.name)
+            if (self.access_control and p.enabled and not p.is_router
+                    and p.name not in ROLE_NAMES):
+                raise ConfigError(
+                    f"processes[{i}].name",
+                    f"{p.name!r} is no access-control role (roles: {', '.join(ROLE_NAMES)})",
+                )
 
 
 class StackConfig(ServiceConfig):
@@ -216,6 +268,14 @@ def load_stack(
     for key, value in data.items():
         if isinstance(value, dict) and key not in owned:
             raise ConfigError(key, "no process of the stack reads this table")
+    if config.stack.access_control:
+        for p in processes:
+            if not p.is_router and configs[p.name].zenoh.mode != "client":
+                raise ConfigError(
+                    "zenoh.mode",
+                    f"must be 'client' with stack.access_control (process {p.name!r}): a peer "
+                    "links to other peers directly, past the router's access control",
+                )
     return Stack(path, config, processes, configs)
 
 

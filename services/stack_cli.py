@@ -46,7 +46,8 @@ def _cmd_status(args: argparse.Namespace) -> int:
     from services.bus.config import ServiceConfig, config_from_args
     from services.bus.introspect import run_status
 
-    return run_status(config_from_args(ServiceConfig, args), watch=args.watch, wait_s=args.wait)
+    return run_status(config_from_args(ServiceConfig, args), watch=args.watch, wait_s=args.wait,
+                      services=args.service, quiet=args.quiet)
 
 
 def _cmd_topics(args: argparse.Namespace) -> int:
@@ -88,6 +89,10 @@ def register(subparsers: Any) -> None:
     s.add_argument("--watch", action="store_true", help="refresh until Ctrl-C")
     s.add_argument("--wait", type=float, default=1.5, metavar="S",
                    help="how long to listen for status messages (default 1.5 s)")
+    s.add_argument("--service", action="append", default=[], metavar="NAME",
+                   help="exit 1 unless this service is alive (repeatable; a container healthcheck)")
+    s.add_argument("-q", "--quiet", action="store_true",
+                   help="no table: only the liveliness query (with --service: names the missing ones)")
     add_config_arguments(s)
     s.set_defaults(func=_cmd_status)
 

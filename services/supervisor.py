@@ -11,7 +11,10 @@ Tests and benchmarks start their processes with the same class.
 waits for each one's liveliness token (``startup_timeout_s``), shows a live status table while
 they run (state, message rates, CPU %, rejected counts, last error), and on SIGINT / SIGTERM /
 the end of ``duration`` stops them in reverse order and prints a summary. A process that fails
-to start or dies is reported with the tail of its log and the whole stack shuts down.
+to start is reported with the tail of its log and the whole stack shuts down; one that dies
+later is restarted when its ``restart`` policy says so (``on-failure``, ``always``: up to
+``max_restarts`` times), left out when it is not ``required``, and otherwise stops the stack
+the same way.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from services.stack import Stack
+from services.stack import ProcessSpec, Stack
 
 __all__ = [
     "SUPERVISOR_PID_ENV",
@@ -101,7 +104,8 @@ def cpu_seconds(pid: int) -> float | None:
 
 
 class ManagedProcess:
-    """One child process: own process group, output in ``log_path``, stopped by PID."""
+    """One child process: own process group, output in ``log_path`` (``append``: after what
+    is there), stopped by PID."""
 
     def __init__(
         self,
@@ -112,6 +116,7 @@ class ManagedProcess:
         env: Mapping[str, str] | None = None,
         cwd: str | Path | None = None,
         stderr_path: Path | None = None,
+        append: bool = False,
     ) -> None:
         self.name = name
         self.argv = list(argv)
@@ -124,9 +129,10 @@ class ManagedProcess:
         full_env.setdefault("RUST_LOG", "error")
         root = str(Path(__file__).resolve().parents[1])
         full_env["PYTHONPATH"] = root + os.pathsep + full_env.get("PYTHONPATH", "")
-        self._log = self.log_path.open("wb")
+        mode = "ab" if append else "wb"  # append: a restarted process keeps its earlier output
+        self._log = self.log_path.open(mode)
         self.stderr_path = stderr_path
-        self._err = stderr_path.open("wb") if stderr_path is not None else None
+        self._err = stderr_path.open(mode) if stderr_path is not None else None
         self.started = time.monotonic()
         self.ended: float | None = None
         self.popen = subprocess.Popen(
@@ -254,6 +260,9 @@ class _Row:
     cpu_base: tuple[float, float] | None = None  #: (wall time, cpu seconds)
     cpu_pct: float = 0.0
     ends_stack: bool = False  #: its clean exit ends the run
+    spec: ProcessSpec | None = None  #: what the stack file says of it (restart policy, required)
+    restarts: int = 0  #: times it was restarted in this run
+    gone: bool = False  #: exited, not required and not restarted: no longer watched
 
 
 @dataclass
@@ -299,6 +308,8 @@ class Supervisor:
         self._stop_reason = ""
         self.planner_status: Any = None  #: the latest PlannerStatus, if a planner runs
         self.task_summary: dict[str, Any] | None = None  #: from the task's completion event
+        #: With ``[stack] access_control``: the credentials' directory (``<run_dir>/secrets``).
+        self.secrets_dir: Path | None = None
 
     # ------------------------------------------------------------------ start
     def _say(self, text: str) -> None:
@@ -308,7 +319,7 @@ class Supervisor:
         from services.bus.messages import Keys, PlannerStatus, ServiceStatus, TaskEvent, decode
         from services.bus.runtime import open_session
 
-        self.session = open_session(self.cfg.zenoh)
+        self.session = open_session(self._session_zenoh())
         keys = Keys(self.cfg.prefix)
         base = keys.liveliness_all.key[:-1]
 
@@ -351,8 +362,10 @@ class Supervisor:
             with contextlib.suppress(ValueError):
                 msg = decode(sample.payload.to_bytes(), str(sample.encoding), TaskEvent)
                 if msg.kind in (TaskEvent.COMPLETED, TaskEvent.ABORTED) and msg.summary_json:
-                    with self._lock:
-                        self.task_summary = json.loads(msg.summary_json)
+                    summary = json.loads(msg.summary_json)
+                    if isinstance(summary, dict):  # anything else is not a task's summary
+                        with self._lock:
+                            self.task_summary = summary
 
         self._token_sub = self.session.liveliness().declare_subscriber(
             keys.liveliness_all.key, on_token, history=True
@@ -379,7 +392,7 @@ class Supervisor:
         endpoint = self._router_endpoint(row.name) if self.session is None else None
         while time.monotonic() < deadline:
             for other in self.rows:
-                if not other.proc.alive():
+                if not other.gone and not other.proc.alive():
                     raise StackFailureError(self._died(other, "exited during start-up"))
             if self.stop_event.is_set():
                 raise StackFailureError(self._stop_reason or "stopped during start-up")
@@ -403,12 +416,45 @@ class Supervisor:
         tail = row.proc.log_tail()
         return f"{row.name} {what}{code}; last lines of {row.proc.log_path}:\n{tail}"
 
+    def _session_zenoh(self) -> Any:
+        """The zenoh settings of the supervisor's own session: the stack's, as the
+        ``operator`` role under access control."""
+        zenoh = self.cfg.zenoh
+        if self.secrets_dir is None:
+            return zenoh
+        from services.bus.credentials import password_file
+
+        return zenoh.model_copy(update={
+            "user": "operator", "password_file": str(password_file(self.secrets_dir, "operator")),
+        })
+
+    def _env_of(self, spec: ProcessSpec) -> dict[str, str]:
+        """The environment of a process: the stack's, plus under access control the router's
+        users file and access control, or the process's role credentials (its name)."""
+        env = dict(self.env)
+        if self.secrets_dir is None:
+            return env
+        from services.bus.config import env_var_name
+        from services.bus.credentials import USERS_FILE, password_file
+
+        if spec.is_router:
+            env[env_var_name("router.access_control")] = "true"
+            env[env_var_name("router.users_file")] = str(self.secrets_dir / USERS_FILE)
+        else:
+            env[env_var_name("zenoh.user")] = spec.name
+            env[env_var_name("zenoh.password_file")] = str(password_file(self.secrets_dir, spec.name))
+        return env
+
     def start(self) -> None:
         """Start every process in order, each after the previous one is alive."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        if self.cfg.stack.access_control:
+            from services.bus.credentials import write_secrets
+
+            self.secrets_dir = write_secrets(self.run_dir / "secrets").out_dir.resolve()
+            self._say(f"access control on: the processes' credentials are in {self.secrets_dir}")
         if not any(self._router_endpoint(p.name) for p in self.stack.processes):
             self._open_session()
-        config = str(self.stack.path.resolve())
         for spec in self.stack.processes:
             endpoint = self._router_endpoint(spec.name)
             if endpoint is not None:
@@ -419,23 +465,63 @@ class Supervisor:
                             f"{spec.name}: tcp/{endpoint[0]}:{endpoint[1]} is already in use "
                             "(another router running?)"
                         )
-            argv = psm_argv([*spec.command, "--config", config])
-            proc = ManagedProcess(spec.name, argv, self.run_dir / f"{spec.name}.log", env=self.env)
-            row = _Row(spec.name, spec.service_name, proc, ends_stack=spec.ends_stack)
+            proc = self._spawn(spec)
+            row = _Row(spec.name, spec.service_name, proc, ends_stack=spec.ends_stack, spec=spec)
             with self._lock:
                 self.rows.append(row)
             self._wait_ready(row)
             if not self.live:
                 self._say(f"started {spec.name} (pid {proc.pid})")
 
+    def _spawn(self, spec: ProcessSpec, *, append: bool = False) -> ManagedProcess:
+        """Start ``psm <command> --config <stack file>`` of ``spec`` (its log in the run dir)."""
+        argv = psm_argv([*spec.command, "--config", str(self.stack.path.resolve())])
+        return ManagedProcess(spec.name, argv, self.run_dir / f"{spec.name}.log",
+                              env=self._env_of(spec), append=append)
+
+    def _restart(self, row: _Row) -> None:
+        """Start ``row``'s process again (its log goes on in the same file) and wait until it is
+        alive, as at start-up."""
+        assert row.spec is not None
+        row.restarts += 1
+        self._say(f"{row.name} exited with code {row.proc.returncode}; restarting it "
+                  f"({row.restarts}/{row.spec.max_restarts})")
+        row.proc.stop(1.0)  # reaps it and closes its log
+        with self._lock:
+            # The old token's loss may not have reached this session yet: the new process's
+            # token is the one to wait for.
+            self._alive.discard(row.service)
+            row.proc = self._spawn(row.spec, append=True)
+            row.status, row.rate_base, row.cpu_base = None, None, None
+        self._wait_ready(row)
+        self._say(f"started {row.name} (pid {row.proc.pid})")
+
     # ------------------------------------------------------------------ run
     def _check_children(self) -> None:
+        """Act on the processes that exited: the clean end of an ``ends_stack`` process stops the
+        run; one whose restart policy applies is restarted (``max_restarts`` times); one that is
+        not required is left out; any other exit stops the stack (StackFailureError)."""
         for row in self.rows:
-            if not row.proc.alive():
-                if row.ends_stack and row.proc.returncode == 0:
-                    self.stop(f"{row.name} finished")
-                    return
-                raise StackFailureError(self._died(row, "died"))
+            if row.gone or row.proc.alive():
+                continue
+            rc = row.proc.returncode
+            if row.ends_stack and rc == 0:
+                self.stop(f"{row.name} finished")
+                return
+            policy = row.spec.restart if row.spec is not None else "no"
+            if policy == "always" or (policy == "on-failure" and rc != 0):
+                assert row.spec is not None
+                if row.restarts >= row.spec.max_restarts:
+                    raise StackFailureError(
+                        self._died(row, f"died again after {row.restarts} restarts (max_restarts)"))
+                self._restart(row)
+                continue
+            if row.spec is not None and not row.spec.required:
+                row.gone = True
+                self._say(f"{row.name} exited with code {rc}; it is not required, the stack goes on "
+                          f"(log: {row.proc.log_path})")
+                continue
+            raise StackFailureError(self._died(row, "died"))
 
     def _update_cpu(self) -> None:
         now = time.monotonic()
@@ -451,6 +537,7 @@ class Supervisor:
         """The live status table (a ``rich`` Table)."""
         from rich.table import Table
 
+        from services.bus.introspect import rejected_cell
         from services.bus.messages import ServiceStatus
 
         c = self.cfg
@@ -468,7 +555,7 @@ class Supervisor:
                 t.add_row(
                     row.name, str(row.proc.pid),
                     f"{row.rates[0]:.0f}", f"{row.rates[1]:.0f}", f"{row.cpu_pct:.0f}",
-                    str(st.rejected) if st else "-", str(st.errors) if st else "-",
+                    rejected_cell(st) if st else "-", str(st.errors) if st else "-",
                     state, (st.last_error[:60] if st else ""),
                 )
         return t
@@ -535,8 +622,10 @@ class Supervisor:
                 "received": int(st.received) if st else None,
                 "published": int(st.published) if st else None,
                 "rejected": int(st.rejected) if st else None,
+                "rejected_by_reason": dict(st.rejected_by_reason) if st else {},
                 "errors": int(st.errors) if st else None,
                 "exit_code": codes[row.name],
+                "restarts": row.restarts,
                 "log": str(row.proc.log_path),
             })
         for spec in self.stack.processes:

@@ -1,4 +1,5 @@
-"""Worker-thread limits for the native libraries a service loads (OpenBLAS, OpenCV).
+"""Threads of a service process: the native libraries' worker pools (OpenBLAS, OpenCV) and the
+real-time scheduling class of the control loop's processes.
 
 OpenBLAS (bundled with numpy and, separately, with scipy) and OpenCV start a pool of worker
 threads per process and hand even tiny operations to it: scipy's LAPACK ``potri`` on the arm's
@@ -11,6 +12,7 @@ services do small operations at a high rate, so they run these libraries single-
 from __future__ import annotations
 
 import ctypes
+import os
 
 #: Setter symbols of the OpenBLAS builds in use (plain, numpy's ILP64 and scipy's prefixed ones).
 _OPENBLAS_SETTERS = (
@@ -58,3 +60,19 @@ def limit_opencv_threads(n: int = 1) -> None:
     import cv2
 
     cv2.setNumThreads(int(n))
+
+
+def set_realtime_priority(priority: int, clock: str = "realtime") -> str:
+    """Switch the calling process to ``SCHED_FIFO`` at ``priority`` (threads created afterwards,
+    e.g. Zenoh's, inherit it). Returns ``""`` on success, else why it was not possible.
+
+    Only on the ``realtime`` clock: a lockstep loop has no deadline and runs as fast as it can,
+    so at real-time priority it would take the CPU from every other process (the goal tracker,
+    the recorder) for as long as it runs."""
+    if priority <= 0 or clock != "realtime":
+        return ""
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError) as exc:
+        return f"cannot set SCHED_FIFO priority {priority}: {exc}"
+    return ""

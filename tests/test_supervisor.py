@@ -19,7 +19,10 @@ pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _stack(tmp_path: Path, extra: str = "", arm: str = "") -> Path:
+def _stack(tmp_path: Path, extra: str = "", arm: str = "", procs: dict[str, str] | None = None) -> Path:
+    """A lockstep stack of router, recorder and arm; ``procs``: more lines of a process's
+    ``[[stack.processes]]`` entry by its name (e.g. a restart policy)."""
+    more = procs or {}
     port = free_port()
     text = f"""
 prefix = "psmtest{port}"
@@ -38,12 +41,15 @@ run_dir = "{tmp_path / 'run'}"
 [[stack.processes]]
 name = "router"
 command = ["serve", "router"]
+{more.get("router", "")}
 [[stack.processes]]
 name = "recorder"
 command = ["record"]
+{more.get("recorder", "")}
 [[stack.processes]]
 name = "arm"
 command = ["arm"]
+{more.get("arm", "")}
 {extra}
 [router]
 listen = ["tcp/127.0.0.1:{port}"]
@@ -79,7 +85,7 @@ def _child_pids(log: str) -> dict[str, int]:
     for line in log.splitlines():
         if line.startswith("started ") and "(pid " in line:
             name = line.split()[1]
-            out[name] = int(line.rsplit("(pid ", 1)[1].rstrip(")"))
+            out[name] = int(line.rsplit("(pid ", 1)[1].split(")")[0])
     return out
 
 
@@ -164,3 +170,56 @@ def test_a_bad_stack_file_is_one_error_line(tmp_path: Path) -> None:
         "psm up: error: arm.lockstep_timeout_s: Input should be greater than 0 (got -1) (process 'arm')"
     ], r.stderr
     assert sys.executable  # the command ran with this interpreter
+
+
+def _wait_pid(up: ManagedProcess, name: str, not_pid: int, timeout_s: float) -> int:
+    """The PID of the latest start of ``name`` once it differs from ``not_pid`` (0: none)."""
+    _wait_for(lambda: _child_pids(up.log_text()).get(name, not_pid) != not_pid, timeout_s)
+    return _child_pids(up.log_text()).get(name, 0)
+
+
+def test_a_process_with_a_restart_policy_is_restarted_up_to_max_restarts(tmp_path: Path) -> None:
+    stack = _stack(tmp_path, procs={"arm": 'restart = "on-failure"\nmax_restarts = 1'})
+    up = _up(stack, "--no-live", tmp_path=tmp_path)
+    try:
+        first = _wait_pid(up, "arm", 0, 90)
+        assert first, up.log_text()
+        os.kill(first, signal.SIGKILL)
+        second = _wait_pid(up, "arm", first, 60)
+        assert second and second != first and _alive(second), up.log_text()
+        assert up.alive()
+        os.kill(second, signal.SIGKILL)  # the second failure: max_restarts = 1 is used up
+        rc = up.wait(60)
+    finally:
+        up.stop()
+    log = up.log_text()
+    assert rc == 1, log
+    assert "arm exited with code -9; restarting it (1/1)" in log, log
+    assert "psm up: error: arm died again after 1 restarts (max_restarts)" in log, log
+    # the restarted arm's output follows the first one's in the same log
+    assert (tmp_path / "run" / "arm.log").read_text().count("arm running") == 2
+    assert not any(_alive(pid) for pid in (first, second))
+
+
+def test_a_process_that_is_not_required_may_exit_and_the_stack_goes_on(tmp_path: Path) -> None:
+    up = _up(_stack(tmp_path, procs={"recorder": "required = false"}), "--no-live", tmp_path=tmp_path)
+    try:
+        assert _wait_for(lambda: len(_child_pids(up.log_text())) == 3, 90), up.log_text()
+        os.kill(_child_pids(up.log_text())["recorder"], signal.SIGKILL)
+        assert _wait_for(lambda: "it is not required, the stack goes on" in up.log_text(), 20)
+        time.sleep(1.0)
+        assert up.alive(), up.log_text()
+        up.signal(signal.SIGTERM)
+        rc = up.wait(60)
+    finally:
+        up.stop()
+    log = up.log_text()
+    assert rc == 1 and "psm up: error: recorder exited with -9" in log, log
+    assert "signal SIGTERM" in log  # stopped by the signal, not by the recorder's exit
+
+
+def test_a_process_that_ends_the_stack_cannot_restart_always(tmp_path: Path) -> None:
+    path = _stack(tmp_path, procs={"arm": 'ends_stack = true\nrestart = "always"'})
+    r = subprocess.run(psm_argv(["up", str(path)]), capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert r.returncode == 2
+    assert "restart: a process with ends_stack = true cannot restart 'always'" in r.stderr, r.stderr

@@ -149,7 +149,7 @@ class _ProbeService(ServiceApp):
     def setup(self, svc: Service) -> None:
         import zenoh
 
-        from services.arm.service import set_realtime_priority
+        from services.threads import set_realtime_priority
 
         args, probe = self.args, self.probe
         problem = set_realtime_priority(args.rt_priority)
@@ -164,7 +164,7 @@ class _ProbeService(ServiceApp):
             try:
                 state = decode(sample.payload.to_bytes(), str(sample.encoding), ArmState)
             except ValueError as exc:
-                svc.record_rejection(keys.arm_state.key, str(exc))
+                svc.record_rejection(keys.arm_state.key, str(exc), getattr(exc, "kind", "malformed"))
                 return
             assert isinstance(state, ArmState)
             if 0 <= stop_tick <= state.tick:

@@ -35,7 +35,6 @@ from __future__ import annotations
 import contextlib
 import gc
 import json
-import os
 import queue
 import threading
 import time
@@ -55,7 +54,7 @@ from services.robot.protocol import (
     command_from_message,
     frame_transforms,
 )
-from services.threads import limit_blas_threads
+from services.threads import limit_blas_threads, set_realtime_priority
 
 SERVICE_NAME = "arm"
 
@@ -197,7 +196,7 @@ class ArmService(ServiceApp):
         rate = section.transforms_rate_hz
         # Before the bus opens, so that Zenoh's threads (which step the realtime arm when a
         # command arrives) inherit the scheduling class.
-        self._rt_problem = set_realtime_priority(section.rt_priority)
+        self._rt_problem = set_realtime_priority(section.rt_priority, config.clock)
         self._tf_every = max(1, round(1e9 / (rate * self.dt_ns))) if rate > 0 else 0
 
     def setup(self, svc: Service) -> None:
@@ -270,17 +269,25 @@ class ArmService(ServiceApp):
             cmd = command_from_message(msg)  # type: ignore[arg-type]
         except MessageDecodeError as exc:
             sim.reject("malformed", str(exc))
-            self.svc.record_rejection(self._cmd_key, str(exc))
+            self.svc.record_rejection(self._cmd_key, str(exc), exc.kind)
             return -1
         except CommandRejectedError as exc:
             sim.reject(exc.reason, str(exc))
-            self.svc.record_rejection(self._cmd_key, str(exc))
+            self.svc.record_rejection(self._cmd_key, str(exc), exc.reason)
             return int(msg.tick)  # type: ignore[attr-defined]
+        tick = cmd.tick
+        stamp = int(msg.stamp_ns)  # type: ignore[attr-defined]
+        if tick <= sim.tick and stamp != sim.time_origin_ns + tick * self.dt_ns:
+            # A command echoes the stamp of the state it answers: this one answers no state the
+            # arm published (a forged, replayed or corrupted command).
+            why = f"command for tick {tick} has stamp {stamp}, not the stamp of that state"
+            sim.reject("stamp", why)
+            self.svc.record_rejection(self._cmd_key, why, "stamp")
+            return -1
         before = sim.counters["rejected"]
         sim.submit(cmd)
         if sim.counters["rejected"] > before:
-            self.svc.record_rejection(self._cmd_key, sim.last_rejection)
-        tick = cmd.tick
+            self.svc.record_rejection(self._cmd_key, sim.last_rejection, sim.last_rejection_reason)
         if tick > self._answered:
             slot = tick % _PUB_RING
             if self._pub_tick[slot] == tick:
@@ -560,18 +567,6 @@ class ArmService(ServiceApp):
         out["service_counters"] = svc.counters.snapshot() if svc is not None else {}
         out["final_tick"] = self.sim.tick
         return out
-
-
-def set_realtime_priority(priority: int) -> str:
-    """Switch the calling process to ``SCHED_FIFO`` at ``priority`` (threads created afterwards,
-    e.g. Zenoh's, inherit it). Returns ``""`` on success, else why it was not possible."""
-    if priority <= 0:
-        return ""
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
-    except (AttributeError, OSError) as exc:
-        return f"cannot set SCHED_FIFO priority {priority}: {exc}"
-    return ""
 
 
 def main(config: ArmConfig) -> int:

@@ -129,6 +129,7 @@ class ArmSim:
         self._kin: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._bounds_kernel = AccelBoundsKernel(robot.limits, self.dt, cfg.brake_fraction)
         self.last_rejection = ""
+        self.last_rejection_reason = ""  #: malformed, non_finite, out_of_range, tick, stamp
         #: True once a held command expired (watchdog), until a fresh command is accepted.
         self.watchdog_tripped = False
         self._refresh()
@@ -194,19 +195,20 @@ class ArmSim:
         """Offer a command. Returns True if accepted (it will drive the next steps).
 
         Rejected (and counted under ``rejected_<reason>``): malformed, non-finite, out of range,
-        or answering a tick that has not happened yet. Ignored (counted ``stale``): a command
-        older than the one already held, or answering a state published before
+        or answering a tick that has not happened yet (``tick``). Ignored (counted ``stale``): a
+        command older than the one already held, or answering a state published before
         :meth:`drop_command` (a lost planner's last commands still in flight).
         """
         self.counters["commands_received"] += 1
         try:
             if isinstance(cmd.tick, int) and cmd.tick > self.tick:
-                raise CommandRejectedError("malformed", f"command answers future tick {cmd.tick}")
+                raise CommandRejectedError("tick", f"command answers future tick {cmd.tick}")
             valid = validate_command(cmd, self.robot.n, self.config.validation)
         except CommandRejectedError as exc:
             self.counters[f"rejected_{exc.reason}"] += 1
             self.counters["rejected"] += 1
             self.last_rejection = str(exc)
+            self.last_rejection_reason = exc.reason
             return False
         if valid.tick < self._min_command_tick or (
             self._command is not None and valid.tick < self._command.tick
@@ -234,6 +236,7 @@ class ArmSim:
         self.counters[f"rejected_{reason}"] += 1
         self.counters["rejected"] += 1
         self.last_rejection = message
+        self.last_rejection_reason = reason
 
     def command_fresh(self) -> bool:
         """True if the held command is within the watchdog timeout at the current tick."""

@@ -1,4 +1,5 @@
-"""Bus sub-commands: ``psm record``, ``psm replay``, ``psm echo``, ``psm serve router``.
+"""Bus sub-commands: ``psm record``, ``psm replay``, ``psm echo``, ``psm secrets``, ``psm serve
+router``.
 
 Other modules add their own ``psm serve <target>`` with :func:`serve_targets`::
 
@@ -90,8 +91,26 @@ def _cmd_router(args: argparse.Namespace) -> int:
     return run_router(config_from_args(RouterConfig, args, {"router.listen": listen}))
 
 
+def _cmd_secrets(args: argparse.Namespace) -> int:
+    from services.bus.credentials import write_secrets
+
+    owner = None
+    if args.owner:
+        uid, _, gid = args.owner.partition(":")
+        if not uid.isdigit() or not (gid or uid).isdigit():
+            raise ValueError(f"--owner: expected UID[:GID], got {args.owner!r}")
+        owner = (int(uid), int(gid or uid))
+    result = write_secrets(args.out_dir, args.roles, force=args.force, owner=owner)
+    for path in result.written:
+        print(f"wrote {path}")
+    for path in result.kept:
+        print(f"kept {path}")
+    return 0
+
+
 def register(subparsers: Any) -> None:
-    """Add ``record``, ``replay`` and ``serve router`` to the ``psm`` command line."""
+    """Add ``record``, ``replay``, ``echo``, ``secrets`` and ``serve router`` to the ``psm``
+    command line."""
     from services.bus.config import add_config_arguments
 
     p = subparsers.add_parser(
@@ -141,6 +160,22 @@ def register(subparsers: Any) -> None:
     p.add_argument("-q", "--quiet", action="store_true", help="only count and check")
     add_config_arguments(p)
     p.set_defaults(func=_cmd_echo)
+
+    from services.bus.acl import ROLE_NAMES
+
+    p = subparsers.add_parser(
+        "secrets", help="write the bus credentials of the roles (access control)",
+        description="Write OUT_DIR/<role>.password (random, mode 0600) for each role and "
+        "OUT_DIR/users.txt, the router's user/password dictionary (docs/security.md). Existing "
+        "password files are kept unless --force.",
+    )
+    p.add_argument("out_dir", metavar="OUT_DIR", help="directory of the secret files")
+    p.add_argument("--roles", nargs="+", metavar="ROLE", choices=ROLE_NAMES,
+                   help=f"only these roles (default all: {', '.join(ROLE_NAMES)})")
+    p.add_argument("--force", action="store_true", help="replace existing password files")
+    p.add_argument("--owner", metavar="UID[:GID]",
+                   help="give the files to this user (the containers' user, e.g. 10001; needs root)")
+    p.set_defaults(func=_cmd_secrets)
 
     r = serve_targets(subparsers).add_parser(
         "router", help="zenoh router (python zenoh, router mode)",

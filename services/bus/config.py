@@ -177,12 +177,26 @@ class ZenohConfig(Section):
     gossip: bool = Field(True, description="gossip scouting on/off")
     config_file: str = Field("", description="optional zenoh JSON5 config file applied first")
     shared_memory: bool = Field(False, description="enable zenoh shared-memory transport")
+    reconnect_max_s: float = Field(
+        0.5, gt=0.0, le=60.0,
+        description="a lost router is retried every 0.1 s, doubling up to this period [s] (zenoh's "
+        "connect/retry): a restarted router is rejoined within about this long",
+    )
     low_latency: bool = Field(
         False,
         description="zenoh's low-latency unicast transport (no batching pipeline, QoS "
         "priorities off); used on a link only if both ends enable it. For the arm<->planner "
         "control loop. Not for sessions that send messages near or above 64 KiB (camera "
         "images): the low-latency transport does not fragment them",
+    )
+    user: str = Field(
+        "",
+        description="zenoh user/password authentication: the user this session authenticates "
+        "as at the router ('' = no authentication); with access control on the router, the "
+        "service's role (docs/security.md)",
+    )
+    password_file: str = Field(
+        "", description="a file whose content (stripped) is the password of zenoh.user"
     )
 
     @field_validator("connect", "listen")
@@ -195,9 +209,31 @@ class ZenohConfig(Section):
         return value
 
     def check(self) -> None:
-        """A client without multicast scouting needs an endpoint."""
+        """A client without multicast scouting needs an endpoint; a user needs a readable,
+        non-empty password file, and a password file a user."""
         if self.mode == "client" and not self.connect and not self.multicast:
             raise ConfigError("connect", "client mode with multicast off needs at least one endpoint")
+        if self.user:
+            self.password()
+        elif self.password_file:
+            raise ConfigError("user", f"is empty but password_file is set ({self.password_file})")
+
+    def password(self) -> str:
+        """The password of :attr:`user`: the stripped content of :attr:`password_file`
+        (raises :class:`ConfigError` naming ``password_file`` if it cannot be read or is
+        empty)."""
+        if not self.password_file:
+            raise ConfigError("password_file", f"is required with user {self.user!r}")
+        try:
+            text = Path(self.password_file).read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            reason = exc.strerror.lower() if exc.strerror else type(exc).__name__
+            raise ConfigError("password_file", f"cannot read {self.password_file}: {reason}") from None
+        except UnicodeDecodeError:
+            raise ConfigError("password_file", f"{self.password_file} is not UTF-8 text") from None
+        if not text:
+            raise ConfigError("password_file", f"{self.password_file} is empty")
+        return text
 
 
 class _Sources:
@@ -268,6 +304,11 @@ class ServiceConfig(BaseSettings):
     log_format: Literal["text", "json"] = Field("text", description="log line format")
     status_period_s: float = Field(
         1.0, gt=0.0, le=3600.0, description="ServiceStatus publication period [s]"
+    )
+    health_file: str = Field(
+        "",
+        description="'' or a file the service rewrites at every status period while it runs and "
+        "(in client mode) is connected to a router: a container healthcheck tests its age",
     )
     queue_size: int = Field(
         1024, ge=1, le=10_000_000, description="bounded queue length of subscription handlers"

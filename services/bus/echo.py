@@ -83,7 +83,7 @@ class _Echo(ServiceApp):
             try:
                 msg = decode(raw.payload, raw.encoding, topic.msg_type if topic else None)
             except ValueError as exc:
-                svc.record_rejection(raw.key, str(exc))
+                svc.record_rejection(raw.key, str(exc), getattr(exc, "kind", "malformed"))
                 return
             if not echo.quiet:
                 print(format_message(raw.key, msg, echo.max_bytes_field), file=self.out, flush=True)

@@ -37,7 +37,8 @@ def zenoh_reason(exc: BaseException) -> str:
 
 
 def session_error(
-    exc: BaseException, mode: str, connect: Sequence[str], listen: Sequence[str]
+    exc: BaseException, mode: str, connect: Sequence[str], listen: Sequence[str], *,
+    user: str = "",
 ) -> BusError:
     """A :class:`BusError` naming the endpoint(s) a failed ``zenoh.open`` was about.
 
@@ -46,6 +47,9 @@ def session_error(
         mode: the session mode (``peer``, ``client``, ``router``).
         connect: the configured connect endpoints, e.g. ``["tcp/127.0.0.1:7447"]``.
         listen: the configured listen endpoints.
+        user: the user the session authenticates as (``""``: none). A router that refuses
+            the credentials closes the connection during the handshake, which zenoh reports
+            like an unreachable endpoint, so the message then names the credentials too.
     """
     reason = zenoh_reason(exc)
     low = reason.lower()
@@ -56,9 +60,16 @@ def session_error(
         return BusError(f"cannot listen on {where} ({mode} mode): {why}")
     if "unable to connect" in low:
         where = ", ".join(connect) or "any endpoint"
+        if user:
+            return BusError(
+                f"cannot connect to {where} ({mode} mode) as user {user!r}: nothing answered "
+                "there or the router refused the credentials (is the router running and "
+                "reachable? are zenoh.user and zenoh.password_file the ones in its users_file?)"
+            )
         return BusError(
             f"cannot connect to {where} ({mode} mode): nothing answered there "
-            "(is the router running and reachable?)"
+            "(is the router running and reachable? does it require authentication: "
+            "zenoh.user and zenoh.password_file?)"
         )
     eps = [f"connect {', '.join(connect)}"] if connect else []
     eps += [f"listen {', '.join(listen)}"] if listen else []

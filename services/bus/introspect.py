@@ -7,8 +7,10 @@ Both join the bus as a plain session (no liveliness token of their own, nothing 
 
 from __future__ import annotations
 
+import sys
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -17,9 +19,12 @@ from services.bus.config import ServiceConfig
 __all__ = ["TopicStats", "collect_status", "collect_topics", "run_status", "run_topics"]
 
 
-def collect_status(session: Any, prefix: str, wait_s: float) -> tuple[set[str], dict[str, Any]]:
-    """The services alive on ``prefix`` (liveliness query) and the latest ServiceStatus of
-    each one heard within ``wait_s`` seconds."""
+def collect_status(
+    session: Any, prefix: str, wait_s: float, *, with_status: bool = True
+) -> tuple[set[str], dict[str, Any]]:
+    """The services alive on ``prefix`` (liveliness query, answered within ``min(wait_s, 2)``
+    seconds) and, with ``with_status``, the latest ServiceStatus of each one heard within
+    ``wait_s`` seconds."""
     from services.bus.messages import Keys, ServiceStatus, decode
 
     keys = Keys(prefix)
@@ -42,7 +47,7 @@ def collect_status(session: Any, prefix: str, wait_s: float) -> tuple[set[str], 
             ok = getattr(reply, "ok", None)
             if ok is not None:
                 alive.add(str(ok.key_expr)[len(base):])
-        deadline = time.monotonic() + wait_s
+        deadline = time.monotonic() + (wait_s if with_status else 0.0)
         while time.monotonic() < deadline:
             with lock:
                 if alive and alive <= set(statuses):
@@ -70,9 +75,16 @@ def status_table(prefix: str, alive: set[str], statuses: dict[str, Any]) -> Any:
             t.add_row(name, "yes" if name in alive else "no", "(no status)", *[""] * 8)
             continue
         t.add_row(name, "yes" if name in alive else "no", ServiceStatus.State.Name(st.state),
-                  f"{st.uptime_s:.1f}", str(st.received), str(st.published), str(st.rejected),
+                  f"{st.uptime_s:.1f}", str(st.received), str(st.published), rejected_cell(st),
                   str(st.errors), str(st.dropped), st.version, st.last_error[:60])
     return t
+
+
+def rejected_cell(status: Any) -> str:
+    """The rejected count of a ``ServiceStatus`` with its reasons, e.g. ``12 (stamp 7, tick 5)``."""
+    by = sorted(status.rejected_by_reason.items(), key=lambda kv: (-kv[1], kv[0]))
+    reasons = ", ".join(f"{k} {v}" for k, v in by)
+    return f"{status.rejected} ({reasons})" if reasons else str(status.rejected)
 
 
 def _console() -> Any:
@@ -83,20 +95,34 @@ def _console() -> Any:
     return console if console.is_terminal else Console(width=200)
 
 
-def run_status(cfg: ServiceConfig, *, watch: bool = False, wait_s: float = 1.5) -> int:
-    """``psm status``: print the services alive on the prefix (exit 1 when none is)."""
+def run_status(
+    cfg: ServiceConfig,
+    *,
+    watch: bool = False,
+    wait_s: float = 1.5,
+    services: Sequence[str] = (),
+    quiet: bool = False,
+) -> int:
+    """``psm status``: print the services alive on the prefix. Exit code 1 when none is, or,
+    with ``services``, when one of them is not alive (a container healthcheck); ``quiet``
+    prints only the missing ones."""
     from services.bus.runtime import open_session
 
     console = _console()
     session = open_session(cfg.zenoh)
     try:
         while True:
-            alive, statuses = collect_status(session, cfg.prefix, wait_s)
-            table = status_table(cfg.prefix, alive, statuses)
-            if watch:
-                console.clear()
-            console.print(table)
+            alive, statuses = collect_status(session, cfg.prefix, wait_s, with_status=not quiet)
+            missing = [s for s in services if s not in alive]
+            if not quiet:
+                table = status_table(cfg.prefix, alive, statuses)
+                if watch:
+                    console.clear()
+                console.print(table)
             if not watch:
+                if missing:
+                    print(f"not alive on {cfg.prefix}/: {', '.join(missing)}", file=sys.stderr)
+                    return 1
                 return 0 if alive else 1
     except KeyboardInterrupt:
         return 0

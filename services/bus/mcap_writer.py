@@ -11,6 +11,12 @@ with the reference ``mcap`` readers).
 Every chunk is handed to the output stream with a single ``write`` call, so with a write-through
 stream a killed process leaves only complete chunks (plus possibly one partial record at the
 end, which non-seeking readers stop at).
+
+A write that fails (a full disk) leaves the writer consistent: :attr:`FastMcapWriter.position`
+is the end of the last record written whole, :meth:`FastMcapWriter.abort_chunk` drops the open
+chunk (its messages leave the statistics), and :meth:`FastMcapWriter.finish` can then end the
+file validly at that position once space is available again (the recorder keeps a reserve for
+it); :meth:`FastMcapWriter.summary_size` bounds what the end of the file takes.
 """
 
 from __future__ import annotations
@@ -79,6 +85,10 @@ class FastMcapWriter:
         self._t_start = 0
         self._t_end = 0
         self._metadata_count = 0
+        # Bytes of the summary records known so far (schemas, channels, chunk and metadata
+        # indexes): what finish() writes besides the fixed-size records.
+        self._summary_records = 0
+        self._data_end: int | None = None  # where finish() began (its data end record)
 
     # -- output ------------------------------------------------------------------------------
     def _write(self, data: bytes | bytearray) -> None:
@@ -111,7 +121,9 @@ class FastMcapWriter:
         sid = len(self._schemas) + 1
         schema = Schema(id=sid, name=name, encoding=encoding, data=data)
         self._schemas[sid] = schema
-        self._buf += self._serialise(schema)
+        raw = self._serialise(schema)
+        self._buf += raw
+        self._summary_records += len(raw)
         return sid
 
     def register_channel(
@@ -122,7 +134,9 @@ class FastMcapWriter:
         channel = Channel(id=cid, topic=topic, message_encoding=message_encoding,
                           schema_id=schema_id, metadata=dict(metadata))
         self._channels[cid] = channel
-        self._buf += self._serialise(channel)
+        raw = self._serialise(channel)
+        self._buf += raw
+        self._summary_records += len(raw)
         return cid
 
     def add_metadata(self, name: str, data: dict[str, str]) -> None:
@@ -131,7 +145,9 @@ class FastMcapWriter:
         raw = self._serialise(record)
         offset = self._pos
         self._write(raw)
-        self._metadata_indexes.append(MetadataIndex(offset=offset, length=len(raw), name=name))
+        index = MetadataIndex(offset=offset, length=len(raw), name=name)
+        self._metadata_indexes.append(index)
+        self._summary_records += len(self._serialise(index))
         self._metadata_count += 1
 
     def add_message(
@@ -173,6 +189,51 @@ class FastMcapWriter:
         """Messages written so far."""
         return self._n
 
+    @property
+    def position(self) -> int:
+        """Bytes handed to the stream whole: the end of the last record written [bytes]."""
+        return self._pos
+
+    @property
+    def pending_messages(self) -> int:
+        """Messages in the open chunk (not yet handed to the stream)."""
+        return self._chunk_msgs
+
+    def summary_size(self) -> int:
+        """An upper bound of the bytes :meth:`finish` writes when the open chunk is empty: data
+        end, summary (schemas, channels, statistics, chunk and metadata indexes), summary
+        offsets, footer and magic [bytes]."""
+        statistics = 64 + 10 * len(self._channels)
+        return self._summary_records + statistics + 13 + 5 * 29 + 29 + len(MAGIC) + 64
+
+    def rewind(self) -> int:
+        """After a failed :meth:`finish`: forget what it wrote, so that it can run again from the
+        end of the data section; returns that position [bytes] (the stream must be cut there).
+        Without a failed finish, the current :attr:`position`."""
+        if self._data_end is not None:
+            self._pos, self._data_end = self._data_end, None
+        return self._pos
+
+    def abort_chunk(self) -> int:
+        """Drop the open chunk (its write failed, or it will not be written): its messages leave
+        the counts and statistics; the schemas and channels it declared stay in the summary.
+        Returns the number of messages dropped."""
+        dropped = self._chunk_msgs
+        for cid, records in self._index.items():
+            self._counts[cid] -= len(records)
+            if not self._counts[cid]:
+                del self._counts[cid]
+        self._n -= dropped
+        if self._chunk_indexes:
+            self._t_start = min(c.message_start_time for c in self._chunk_indexes)
+            self._t_end = max(c.message_end_time for c in self._chunk_indexes)
+        else:
+            self._t_start = self._t_end = 0
+        self._buf = bytearray()
+        self._index = {}
+        self._chunk_msgs = 0
+        return dropped
+
     def _finish_chunk(self) -> None:
         if not self._buf:
             return
@@ -193,7 +254,8 @@ class FastMcapWriter:
             MessageIndex(channel_id=cid, records=records).write(rb)
         index_bytes = rb.end()
         chunk_offset = self._pos
-        # one write for chunk + its message indexes: all or nothing reaches the OS
+        # one write for chunk + its message indexes: all or nothing reaches the OS (a failed
+        # write leaves the position, the index and the open chunk as they were)
         self._write(chunk_bytes + index_bytes)
         self._chunk_indexes.append(ChunkIndex(
             message_start_time=self._chunk_start, message_end_time=self._chunk_end,
@@ -201,6 +263,7 @@ class FastMcapWriter:
             message_index_offsets=offsets, message_index_length=len(index_bytes),
             compression=self.compression, compressed_size=len(data),
             uncompressed_size=len(raw)))
+        self._summary_records += len(self._serialise(self._chunk_indexes[-1]))
         self._buf = bytearray()
         self._index = {}
         self._chunk_msgs = 0
@@ -215,6 +278,7 @@ class FastMcapWriter:
     def finish(self) -> None:
         """Close the last chunk and write data end, summary, summary offsets and footer."""
         self._finish_chunk()
+        self._data_end = self._pos
         self._write_records(DataEnd(data_section_crc=0))
         summary_start = self._pos
         groups: list[tuple[int, list[Any]]] = [

@@ -144,7 +144,13 @@ _SCENE_TYPES = frozenset({"foxglove.SceneUpdate"})
 
 class MessageDecodeError(ValueError):
     """A payload cannot be decoded: unknown/unsupported encoding, wrong type for the key, or
-    malformed protobuf bytes. The message is one line naming the schema and the cause."""
+    malformed protobuf bytes. The message is one line naming the schema and the cause;
+    :attr:`kind` is the rejection reason counted on a service's status (``encoding``,
+    ``schema``, ``type`` or ``malformed``)."""
+
+    def __init__(self, message: str, kind: str = "malformed") -> None:
+        super().__init__(message)
+        self.kind = kind
 
 
 class InvalidKeyError(ValueError):
@@ -513,13 +519,13 @@ def message_type_for_encoding(encoding: str) -> type[Message]:
     encoding is not ``application/protobuf;<known type>``."""
     if not isinstance(encoding, str) or not encoding.startswith(ENCODING_PREFIX):
         raise MessageDecodeError(
-            f"unsupported encoding {encoding!r}: expected '{ENCODING_PREFIX}<schema>'"
+            f"unsupported encoding {encoding!r}: expected '{ENCODING_PREFIX}<schema>'", "encoding"
         )
     name = encoding[len(ENCODING_PREFIX) :]
     try:
         return MESSAGE_TYPES[name]
     except KeyError:
-        raise MessageDecodeError(f"unknown schema {name!r} in encoding {encoding!r}") from None
+        raise MessageDecodeError(f"unknown schema {name!r} in encoding {encoding!r}", "schema") from None
 
 
 def encode(msg: Message) -> tuple[bytes, str]:
@@ -541,7 +547,8 @@ def decode(
     if expected is not None and cls is not expected:
         raise MessageDecodeError(
             f"wrong message type {cls.DESCRIPTOR.full_name}: expected "
-            f"{expected.DESCRIPTOR.full_name}"
+            f"{expected.DESCRIPTOR.full_name}",
+            "type",
         )
     msg = cls()
     try:
@@ -641,7 +648,7 @@ def file_descriptor_set(schema_name: str) -> bytes:
     try:
         cls = MESSAGE_TYPES[schema_name]
     except KeyError:
-        raise MessageDecodeError(f"unknown schema {schema_name!r}") from None
+        raise MessageDecodeError(f"unknown schema {schema_name!r}", "schema") from None
     fds = FileDescriptorSet()
     seen: set[str] = set()
 

@@ -20,6 +20,12 @@
 * A metadata record ``psm.recorder`` holds the config snapshot and the project version.
 * ``split_size_mb`` / ``split_duration_s`` start a new file (``<stem>-0000.mcap``, ...).
 * An unwritable path or too little free disk space raises :class:`RecorderError` at start.
+* A full disk later (or any failed write) stops the recording, not the recorder: the space kept
+  in a reserve file next to the recording (``.<name>.reserve``, at least
+  :data:`SUMMARY_RESERVE_MIN` bytes and twice what the end of the file needs, grown as chunks
+  accumulate) is released, the file is cut back to its last complete chunk and ends validly
+  (summary, indexes, footer), one error line says so, and the service stays up, DEGRADED with
+  that reason, counting what it no longer writes; its exit code is 1.
 
 Samples reach the writer thread through a bounded zenoh channel (``"channel"`` delivery of
 :class:`services.bus.runtime.Subscription`): Zenoh's receive thread runs no Python, and when the
@@ -58,7 +64,17 @@ from services.bus.messages import (
 )
 from services.bus.runtime import Service, ServiceApp, run_service
 
-__all__ = ["McapSink", "RecorderConfig", "RecorderError", "RecorderSection", "run_recorder"]
+__all__ = [
+    "SUMMARY_RESERVE_MIN",
+    "McapSink",
+    "RecorderConfig",
+    "RecorderError",
+    "RecorderSection",
+    "run_recorder",
+]
+
+#: The smallest reserve kept for the end of a recording [bytes] (a few hundred chunk indexes).
+SUMMARY_RESERVE_MIN = 64 * 1024
 
 
 class RecorderError(BusError):
@@ -126,8 +142,45 @@ class _UnbufferedFile:
     def flush(self) -> None:
         """Nothing is buffered in user space."""
 
+    def truncate(self, size: int) -> None:
+        """Cut the file to ``size`` bytes (drops what a failed write left of a record)."""
+        os.ftruncate(self._f.fileno(), size)
+        self._f.seek(size)  # the next write goes at the new end, not where the failed one stopped
+        self.size = size
+
     def close(self) -> None:
         self._f.close()
+
+
+class _Reserve:
+    """Disk space held for the end of a recording: a file of ``size`` allocated bytes
+    (``posix_fallocate``: really allocated, not sparse) that is deleted to make room for the
+    summary when the disk is full."""
+
+    def __init__(self, path: Path, size: int) -> None:
+        self.path = path
+        path.unlink(missing_ok=True)  # a reserve left by a killed recorder
+        self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        self.size = 0
+        try:
+            self.ensure(size)
+        except OSError:
+            self.release()
+            raise
+
+    def ensure(self, size: int) -> None:
+        """Hold at least ``size`` bytes (OSError, e.g. ENOSPC, if the disk cannot give them)."""
+        if size > self.size:
+            os.posix_fallocate(self._fd, 0, size)
+            self.size = size
+
+    def release(self) -> None:
+        """Give the space back (idempotent)."""
+        if self._fd >= 0:
+            with contextlib.suppress(OSError):
+                os.close(self._fd)
+            self._fd = -1
+            self.path.unlink(missing_ok=True)
 
 
 def _check_writable(path: Path, min_free_mb: float, overwrite: bool) -> None:
@@ -149,8 +202,10 @@ def _check_writable(path: Path, min_free_mb: float, overwrite: bool) -> None:
 
 
 class McapSink:
-    """Thread-safe MCAP writer with per-(key, encoding) channels, periodic chunk flushing and
-    size/duration splitting."""
+    """Thread-safe MCAP writer with per-(key, encoding) channels, periodic chunk flushing,
+    size/duration splitting and a valid end when a write fails (:attr:`failure`, see the
+    module docstring): :meth:`write` and :meth:`flush` then raise :class:`RecorderError` with
+    that one line, now and on every later call."""
 
     def __init__(
         self,
@@ -188,6 +243,9 @@ class McapSink:
         self._file_start_ns = 0
         self._unflushed = 0
         self._closed = False
+        self._reserve: _Reserve | None = None
+        #: Why the recording stopped before :meth:`close` (one line; "" while it runs).
+        self.failure = ""
         self._open_next()
 
     def _next_path(self) -> Path:
@@ -202,6 +260,11 @@ class McapSink:
         _check_writable(path, self.min_free_mb, self.overwrite)
         try:
             self._file = _UnbufferedFile(path, self.overwrite)
+        except FileExistsError:
+            raise RecorderError(f"{path} exists (use --overwrite)") from None
+        except OSError as exc:
+            raise RecorderError(f"cannot write recording to {path}: {exc.strerror}") from None
+        try:
             self._writer = FastMcapWriter(
                 self._file, chunk_size=self.chunk_size, compression=self.compression
             )
@@ -210,9 +273,15 @@ class McapSink:
             meta_record["file_index"] = str(len(self.paths))
             meta_record["created_utc"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
             self._writer.add_metadata("psm.recorder", meta_record)
-        except FileExistsError:
-            raise RecorderError(f"{path} exists (use --overwrite)") from None
+            self._reserve = _Reserve(
+                path.with_name(f".{path.name}.reserve"),
+                max(SUMMARY_RESERVE_MIN, 2 * self._writer.summary_size()),
+            )
         except OSError as exc:
+            # Nothing of this file is usable yet: no file rather than a stub.
+            self._file.close()
+            self._file = None
+            path.unlink(missing_ok=True)
             raise RecorderError(f"cannot write recording to {path}: {exc.strerror}") from None
         self.paths.append(path)
         self._channels.clear()
@@ -254,33 +323,83 @@ class McapSink:
         ``publish_time`` is the message's own stamp, see the module docstring)."""
         with self._lock:
             if self._closed:
-                raise RecorderError("recording already finalised")
-            if self._file_start_ns == 0:
-                self._file_start_ns = recv_ns
-            elif (self.split_ns and recv_ns - self._file_start_ns >= self.split_ns) or (
-                self.split_bytes and self._file is not None
-                and self._file.size >= self.split_bytes
-            ):
-                self._finish_file()
-                self._open_next()
-                self._file_start_ns = recv_ns
-            ch = self._channels.get((key, encoding))
-            if ch is None:
-                ch = self._channel(key, encoding)
-            seq = self._seq[ch] + 1
-            self._seq[ch] = seq
-            stamp = stamp_ns_of(payload, encoding)
-            self._writer.add_message(
-                ch, recv_ns, payload, recv_ns if stamp is None else stamp, seq & 0xFFFFFFFF
-            )
-            self.message_count += 1
-            self._unflushed += 1
+                raise RecorderError(self.failure or "recording already finalised")
+            try:
+                if self._file_start_ns == 0:
+                    self._file_start_ns = recv_ns
+                elif (self.split_ns and recv_ns - self._file_start_ns >= self.split_ns) or (
+                    self.split_bytes and self._file is not None
+                    and self._file.size >= self.split_bytes
+                ):
+                    self._finish_file()
+                    self._open_next()
+                    self._file_start_ns = recv_ns
+                ch = self._channels.get((key, encoding))
+                if ch is None:
+                    ch = self._channel(key, encoding)
+                seq = self._seq[ch] + 1
+                self._seq[ch] = seq
+                stamp = stamp_ns_of(payload, encoding)
+                self.message_count += 1
+                self._unflushed += 1
+                self._writer.add_message(
+                    ch, recv_ns, payload, recv_ns if stamp is None else stamp, seq & 0xFFFFFFFF
+                )
+                self._keep_reserve()
+            except (OSError, RecorderError) as exc:
+                self._stop_writing(exc)
+                raise RecorderError(self.failure) from None
+
+    def _keep_reserve(self) -> None:
+        """Grow the reserve when the end of the file needs more than half of it (OSError when
+        the disk cannot give it: the disk is full)."""
+        need = 2 * self._writer.summary_size()
+        if self._reserve is not None and need > self._reserve.size:
+            self._reserve.ensure(max(2 * self._reserve.size, need))
+
+    def _stop_writing(self, exc: BaseException) -> None:
+        """A write failed (under the lock): drop the open chunk, cut the file back to its last
+        complete record, release the reserve and end the file there; set :attr:`failure`."""
+        self._closed = True
+        path = self.paths[-1] if self.paths else self.base
+        if self._file is None or self._writer is None or not self.paths:  # a split's next file failed
+            self.failure = f"recording stopped: {exc}"
+            return
+        w, f = self._writer, self._file
+        lost = w.abort_chunk()
+        self.message_count -= lost
+        good = w.rewind()  # the end of the last whole chunk (also when finish() itself failed)
+        if self._reserve is not None:
+            self._reserve.release()
+            self._reserve = None
+        end = "finalised (summary, indexes, footer) after its last complete chunk"
+        try:
+            f.truncate(good)
+            self._finish_file()
+        except OSError:
+            good = w.rewind()
+            with contextlib.suppress(OSError):
+                f.truncate(good)
+                f.close()
+            self._file = None
+            end = "not finalised, readable up to its last complete chunk"
+        errno_ = getattr(exc, "errno", None)
+        what = "disk full" if errno_ in (errno.ENOSPC, errno.EDQUOT) else "write failed"
+        reason = getattr(exc, "strerror", None) or str(exc)
+        self.failure = (
+            f"{what} ({reason}): stopped recording to {path} after {self.message_count} messages "
+            f"({good / 1e6:.2f} MB); the file is {end}; {lost} messages of the open chunk were "
+            "not written"
+        )
 
     def discard(self) -> None:
         """Close without finalising and delete every file this sink wrote (a recorder that
         failed to start leaves nothing behind that would block a retry). Idempotent."""
         with self._lock:
             self._closed = True
+            if self._reserve is not None:
+                self._reserve.release()
+                self._reserve = None
             if self._file is not None:
                 with contextlib.suppress(OSError):
                     self._file.close()
@@ -292,9 +411,18 @@ class McapSink:
     def flush(self) -> None:
         """Close the open chunk (if it holds messages) and hand it to the OS."""
         with self._lock:
-            if self._closed or not self._unflushed:
+            if self._closed:
+                if self.failure:
+                    raise RecorderError(self.failure)
                 return
-            self._writer.flush()
+            if not self._unflushed:
+                return
+            try:
+                self._writer.flush()
+                self._keep_reserve()
+            except OSError as exc:
+                self._stop_writing(exc)
+                raise RecorderError(self.failure) from None
             self._unflushed = 0
 
     @property
@@ -308,10 +436,14 @@ class McapSink:
         return out
 
     def _finish_file(self) -> None:
+        """End the current file (summary, indexes, footer), release its reserve, close it."""
+        if self._reserve is not None:
+            self._reserve.release()  # the space the summary may need
+            self._reserve = None
+        self._writer.finish()
         for ch, n in self._writer.channel_message_counts().items():
             key = self._topics[ch]
             self._closed_counts[key] = self._closed_counts.get(key, 0) + n
-        self._writer.finish()
         assert self._file is not None
         self._file.close()
         self._file = None
@@ -322,7 +454,11 @@ class McapSink:
             if self._closed:
                 return
             self._closed = True
-            self._finish_file()
+            try:
+                self._finish_file()
+            except OSError as exc:
+                self._stop_writing(exc)
+                raise RecorderError(self.failure) from None
 
 
 def default_output_path() -> Path:
@@ -358,19 +494,21 @@ def _subscriptions(
     if not latched:
         return subs
     start_ns = time.time_ns()
-    seen: OrderedDict[bytes, None] = OrderedDict()
+    # Digests of the latched samples each path wrote (the last 10,000): the history path skips
+    # what the live path wrote; the live path skips, once, a sample the history path wrote. A
+    # sample published twice with the same bytes is recorded twice.
+    by_live: OrderedDict[bytes, None] = OrderedDict()
+    by_history: OrderedDict[bytes, None] = OrderedDict()
     lock = threading.Lock()
     cache: dict[str, bool] = {}
 
-    def first_time(raw: Any) -> bool:
-        digest = hashlib.blake2b(raw.key.encode() + b"\0" + raw.payload, digest_size=16).digest()
-        with lock:
-            if digest in seen:
-                return False
-            seen[digest] = None
-            if len(seen) > 10_000:
-                seen.popitem(last=False)
-            return True
+    def digest(raw: Any) -> bytes:
+        return hashlib.blake2b(raw.key.encode() + b"\0" + raw.payload, digest_size=16).digest()
+
+    def remember(seen: OrderedDict[bytes, None], d: bytes) -> None:
+        seen[d] = None
+        if len(seen) > 10_000:
+            seen.popitem(last=False)
 
     def is_latched(key: str) -> bool:
         hit = cache.get(key)
@@ -379,14 +517,24 @@ def _subscriptions(
         return hit
 
     def live(raw: Any) -> None:
-        if is_latched(raw.key) and not first_time(raw):
-            return
+        if is_latched(raw.key):
+            d = digest(raw)
+            with lock:
+                if d in by_history:
+                    del by_history[d]
+                    return
+                remember(by_live, d)
         on_sample(raw)
 
     def hist(raw: Any) -> None:
-        if (raw.ts_ns and raw.ts_ns < start_ns and any(k.intersects(raw.key) for k in kes)
-                and first_time(raw)):
-            on_sample(raw)
+        if not (raw.ts_ns and raw.ts_ns < start_ns and any(k.intersects(raw.key) for k in kes)):
+            return
+        d = digest(raw)
+        with lock:
+            if d in by_live or d in by_history:
+                return
+            remember(by_history, d)
+        on_sample(raw)
 
     subs = [(str(k), live, 0) for k in kes]
     subs += [(str(lk), hist, 1) for lk in latched]
@@ -471,28 +619,49 @@ def _start_recording(
     """Declare the recording subscriptions, the flusher and the finalising hook; returns the
     event set when a write fails."""
     failed = threading.Event()
+    stop_lock = threading.Lock()
+    not_written = [0]  # samples received after the recording stopped
+
+    def stopped(exc: BaseException) -> None:
+        # The first failure says it once (error line, DEGRADED with the reason); the service
+        # stays up, and the rest of the stack does not notice.
+        with stop_lock:
+            if failed.is_set():
+                return
+            failed.set()
+            text = sink.failure or f"recording stopped: {exc}"
+            svc.set_degraded(text)
+            svc.record_error(text)
 
     def on_sample(raw: Any) -> None:
         if failed.is_set():
+            not_written[0] += 1
             return
         try:
             sink.write(raw.key, raw.encoding, raw.payload, raw.recv_ns)
         except (OSError, RecorderError) as exc:
-            failed.set()
-            svc.record_error(f"write failed, stopping: {exc}")
-            svc.stop()
+            stopped(exc)
 
     def flusher() -> None:
         while not svc.stop_event.wait(rc.flush_interval_s):
+            if failed.is_set():
+                return
             try:
                 sink.flush()
-            except OSError as exc:
-                failed.set()
-                svc.record_error(f"flush failed, stopping: {exc}")
-                svc.stop()
+            except (OSError, RecorderError) as exc:
+                stopped(exc)
 
     def finalise() -> None:
-        sink.close()
+        if failed.is_set():
+            svc.log.info("recording had stopped", extra={"files": [str(p) for p in sink.paths],
+                                                          "messages": sink.message_count,
+                                                          "not_written": not_written[0]})
+            return
+        try:
+            sink.close()
+        except RecorderError as exc:
+            stopped(exc)
+            return
         svc.log.info(
             "recording finalised",
             extra={"files": [str(p) for p in sink.paths], "messages": sink.message_count,

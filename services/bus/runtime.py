@@ -18,8 +18,9 @@ The :class:`Service` it hands to the app gives every process the same behaviour:
   advanced publisher and fetched by advanced subscribers as history for late joiners);
 * subscription callbacks run on a worker thread fed by a bounded queue: the Zenoh receive thread
   only enqueues (a full queue drops the sample and counts it in ``dropped``);
-* malformed payloads / wrong encodings are counted as ``rejected``, logged (rate-limited) and
-  skipped — the service keeps running; exceptions in callbacks are counted as ``errors``;
+* malformed payloads / wrong encodings are counted as ``rejected`` (and by reason in
+  ``rejected_by_reason``), logged (rate-limited) and skipped — the service keeps running;
+  exceptions in callbacks are counted as ``errors``;
 * graceful shutdown on SIGINT/SIGTERM: stop subscriptions, drain the queues, run the
   ``on_close`` hooks (flush outputs), publish a final status and close the session.
 
@@ -49,12 +50,14 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import os
 import queue
 import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import Any, NamedTuple
 
 from google.protobuf.message import Message
@@ -75,6 +78,7 @@ __all__ = [
     "ServiceApp",
     "Subscription",
     "TypedPublisher",
+    "init_zenoh_log",
     "open_session",
     "project_version",
     "run_service",
@@ -184,9 +188,10 @@ def project_version() -> str:
 _zenoh_log_initialised = False
 
 
-def zenoh_config(cfg: ZenohConfig) -> Any:
+def zenoh_config(cfg: ZenohConfig, extra: Mapping[str, Any] | None = None) -> Any:
     """A ``zenoh.Config`` from a validated :class:`ZenohConfig` (the optional JSON5 file is
-    loaded first, the typed fields override it)."""
+    loaded first, the typed fields override it), then ``extra`` (zenoh config path -> JSON
+    value, e.g. the router's ``{"access_control": {...}}``)."""
     import zenoh
 
     conf = zenoh.Config.from_file(cfg.config_file) if cfg.config_file else zenoh.Config()
@@ -197,12 +202,27 @@ def zenoh_config(cfg: ZenohConfig) -> Any:
         conf.insert_json5("listen/endpoints", json.dumps(list(cfg.listen)))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(bool(cfg.multicast)))
     conf.insert_json5("scouting/gossip/enabled", json.dumps(bool(cfg.gossip)))
+    # A client whose router goes away keeps its session and reconnects on its own, declaring
+    # its subscribers, publishers' interests and liveliness tokens again (zenoh 1.x); the retry
+    # period starts at 0.1 s and doubles up to reconnect_max_s (zenoh's default: 1 s up to 4 s).
+    # The first connection still fails at once (connect/timeout_ms 0 in client mode): an
+    # unreachable router at start is one error line.
+    max_ms = round(cfg.reconnect_max_s * 1000)
+    conf.insert_json5("connect/retry", json.dumps(
+        {"period_init_ms": min(100, max_ms), "period_max_ms": max_ms, "period_increase_factor": 2}))
     # Samples carry an HLC timestamp (advanced publishers' caches and late joiners rely on it).
     conf.insert_json5("timestamping/enabled", "true")
     if cfg.shared_memory:
         conf.insert_json5("transport/shared_memory/enabled", "true")
     if cfg.low_latency:
         enable_low_latency(conf)
+    if cfg.user:
+        # User/password authentication at the router (its dictionary: ``[router] users_file``);
+        # the password is read from its file now, never kept in the config.
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(cfg.user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(cfg.password()))
+    for path, value in (extra or {}).items():
+        conf.insert_json5(path, json.dumps(value))
     return conf
 
 
@@ -213,9 +233,36 @@ def enable_low_latency(conf: Any) -> None:
     conf.insert_json5("transport/unicast/qos/enabled", "false")
 
 
-def open_session(cfg: ZenohConfig) -> Any:
-    """Open a ``zenoh.Session`` from config. Zenoh's own (Rust) log level follows ``RUST_LOG``,
-    default ``error``.
+def init_zenoh_log(directives: Sequence[str] = ()) -> None:
+    """Start zenoh's (Rust) log output, once per process: the filter is ``RUST_LOG`` (default
+    ``error``) followed by ``directives`` (``target=level`` items of a tracing ``EnvFilter``;
+    a more specific target wins, so they apply whatever ``RUST_LOG`` says). zenoh writes these
+    lines to stdout. Later calls do nothing."""
+    import os
+
+    import zenoh
+
+    global _zenoh_log_initialised
+    if _zenoh_log_initialised:
+        return
+    _zenoh_log_initialised = True
+    old = os.environ.get("RUST_LOG")
+    base = (old or "").strip() or "error"
+    # zenoh reads the filter from RUST_LOG when it is set (the fallback only applies when it is
+    # not), so the directives go in there for the call, and the variable is put back after it.
+    os.environ["RUST_LOG"] = ",".join([base, *directives])
+    try:
+        zenoh.init_log_from_env_or(base)
+    finally:
+        if old is None:
+            del os.environ["RUST_LOG"]
+        else:
+            os.environ["RUST_LOG"] = old
+
+
+def open_session(cfg: ZenohConfig, extra: Mapping[str, Any] | None = None) -> Any:
+    """Open a ``zenoh.Session`` from config (``extra``: see :func:`zenoh_config`). Zenoh's own
+    (Rust) log level follows ``RUST_LOG``, default ``error`` (:func:`init_zenoh_log`).
 
     Raises :class:`~services.bus.errors.BusError` (one line naming the endpoint) when Zenoh
     refuses: an unreachable router in client mode, a listen endpoint already in use, a
@@ -224,14 +271,11 @@ def open_session(cfg: ZenohConfig) -> Any:
 
     from services.bus.errors import session_error
 
-    global _zenoh_log_initialised
-    if not _zenoh_log_initialised:
-        zenoh.init_log_from_env_or("error")
-        _zenoh_log_initialised = True
+    init_zenoh_log()
     try:
-        return zenoh.open(zenoh_config(cfg))
+        return zenoh.open(zenoh_config(cfg, extra))
     except zenoh.ZError as exc:
-        raise session_error(exc, cfg.mode, cfg.connect, cfg.listen) from None
+        raise session_error(exc, cfg.mode, cfg.connect, cfg.listen, user=cfg.user) from None
 
 
 def _qos_kwargs(topic: Topic) -> dict[str, Any]:
@@ -253,7 +297,7 @@ def _qos_kwargs(topic: Topic) -> dict[str, Any]:
 class Counters:
     """Thread-safe service counters reported in :class:`ServiceStatus`."""
 
-    __slots__ = ("_lock", "dropped", "errors", "published", "received", "rejected")
+    __slots__ = ("_lock", "dropped", "errors", "published", "received", "rejected", "rejected_by")
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
@@ -262,11 +306,24 @@ class Counters:
         self.published = 0
         self.errors = 0
         self.dropped = 0
+        #: ``rejected`` by reason (``encoding``, ``malformed``, ``tick``, ...).
+        self.rejected_by: dict[str, int] = {}
 
     def add(self, name: str, n: int = 1) -> None:
         """Increment counter ``name`` by ``n``."""
         with self._lock:
             setattr(self, name, getattr(self, name) + n)
+
+    def reject(self, reason: str) -> None:
+        """Count one rejected input under ``reason``."""
+        with self._lock:
+            self.rejected += 1
+            self.rejected_by[reason] = self.rejected_by.get(reason, 0) + 1
+
+    def rejections(self) -> dict[str, int]:
+        """A copy of the rejected counts by reason."""
+        with self._lock:
+            return dict(self.rejected_by)
 
     def snapshot(self, received: int = 0) -> dict[str, int]:
         """A consistent copy of all counters (``received`` is added to the own count)."""
@@ -295,6 +352,7 @@ class TypedPublisher:
         self.encoding = encoding_for(topic.msg_type)
         self._counters = service.counters
         self._count = count
+        self._closed = False
         kwargs = _qos_kwargs(topic)
         if topic.qos.history > 0:
             import zenoh.ext as zext
@@ -319,9 +377,7 @@ class TypedPublisher:
                 f"{self.key} carries {self.topic.msg_type.DESCRIPTOR.full_name}, "  # type: ignore[union-attr]
                 f"got {type(msg).__name__}"
             )
-        self._pub.put(msg.SerializeToString())
-        if self._count:
-            self._counters.add("published")
+        self.put_bytes(msg.SerializeToString())
 
     @property
     def has_subscribers(self) -> bool | None:
@@ -333,13 +389,20 @@ class TypedPublisher:
         return None if status is None else bool(status)
 
     def put_bytes(self, payload: bytes) -> None:
-        """Publish an already serialised message of the topic's type."""
-        self._pub.put(payload)
+        """Publish an already serialised message of the topic's type. Once the publisher is
+        closed (the service shuts down) a sample from a callback still running is dropped."""
+        try:
+            self._pub.put(payload)
+        except Exception:
+            if self._closed:
+                return
+            raise
         if self._count:
             self._counters.add("published")
 
     def close(self) -> None:
-        """Undeclare the publisher."""
+        """Undeclare the publisher (later :meth:`put` calls are dropped)."""
+        self._closed = True
         with contextlib.suppress(Exception):
             self._pub.undeclare()
 
@@ -528,6 +591,7 @@ class Service:
         session: Any | None = None,
         version: str | None = None,
         zenoh: ZenohConfig | None = None,
+        zenoh_extra: Mapping[str, Any] | None = None,
     ) -> None:
         from services.bus.messages import Keys
 
@@ -547,7 +611,10 @@ class Service:
         self._error_log = _RateLimiter(1.0)
         self._reject_log = _RateLimiter(1.0)
         self._own_session = session is None
-        self.session = session if session is not None else open_session(zenoh or config.zenoh)
+        self._mode = (zenoh or config.zenoh).mode
+        self.session = (
+            session if session is not None else open_session(zenoh or config.zenoh, zenoh_extra)
+        )
         self._subs: list[Subscription] = []
         self._pubs: list[TypedPublisher] = []
         self._on_close: list[Callable[[], None]] = []
@@ -684,6 +751,9 @@ class Service:
         if self._token is not None:
             with contextlib.suppress(Exception):
                 self._token.undeclare()
+        if self.config.health_file:
+            with contextlib.suppress(OSError):
+                Path(self.config.health_file).unlink()
         if self._own_session:
             with contextlib.suppress(Exception):
                 self.session.close()
@@ -698,13 +768,16 @@ class Service:
         if n is not None:
             self.log.error(text, exc_info=exc, extra={"suppressed": n})
 
-    def record_rejection(self, key: str, reason: str) -> None:
-        """Count a rejected input sample and log it (rate-limited)."""
-        self.counters.add("rejected")
+    def record_rejection(self, key: str, reason: str, kind: str = "invalid") -> None:
+        """Count a rejected input sample under ``kind`` (a short reason: ``encoding``,
+        ``schema``, ``type``, ``malformed``, ``non_finite``, ``tick``, ``stamp``, ...; the
+        status's ``rejected_by_reason``) and log it with the one-line ``reason``
+        (rate-limited)."""
+        self.counters.reject(kind)
         self.last_error = f"rejected on {key}: {reason}"
         n = self._reject_log.allow()
         if n is not None:
-            self.log.warning("rejected sample", extra={"key": key, "reason": reason,
+            self.log.warning("rejected sample", extra={"key": key, "reason": reason, "kind": kind,
                                                        "suppressed": n})
 
     # -- pub/sub ---------------------------------------------------------------------------------
@@ -738,7 +811,7 @@ class Service:
             try:
                 msg = decode(raw.payload, raw.encoding, expected)
             except ValueError as exc:
-                self.record_rejection(raw.key, str(exc))
+                self.record_rejection(raw.key, str(exc), getattr(exc, "kind", "malformed"))
                 return
             callback(msg, raw.key)
 
@@ -828,6 +901,7 @@ class Service:
             last_error=last_error,
             version=self.version,
             queued=sum(s.pending() for s in self._subs),
+            rejected_by_reason=self.counters.rejections(),
             **c,
         )
 
@@ -844,6 +918,31 @@ class Service:
                 self._publish_status()
             except Exception as exc:
                 self.record_error(f"status publication failed: {exc!r}", exc)
+            if self.config.health_file:
+                self._write_health(Path(self.config.health_file))
+
+    def connected(self) -> bool:
+        """The session reaches the network: a client is connected to a router (peers and
+        routers always count as connected)."""
+        if self._mode != "client":
+            return True
+        try:
+            return bool(list(self.session.info.routers_zid()))
+        except Exception:
+            return False
+
+    def _write_health(self, path: Path) -> None:
+        """Rewrite the health file (atomically) while the service runs and is connected; a
+        healthcheck tests its age. When disconnected the file is left to age."""
+        if not self.connected():
+            return
+        try:
+            tmp = path.with_name(path.name + ".tmp")
+            tmp.write_text(json.dumps({"service": self.name, "state": ServiceStatus.State.Name(self.state),
+                                       "uptime_s": round(time.monotonic() - self._t0, 1)}))
+            os.replace(tmp, path)
+        except OSError as exc:
+            self.record_error(f"health file {path}: {exc.strerror}", exc)
 
 
 # --------------------------------------------------------------------------------------------
@@ -883,6 +982,11 @@ class ServiceApp:
         """The zenoh settings of the process's session (default: the config's ``[zenoh]``)."""
         return self.config.zenoh
 
+    def zenoh_extra(self) -> dict[str, Any]:
+        """zenoh settings beyond :class:`ZenohConfig` (config path -> JSON value; default
+        none), e.g. the router's access control."""
+        return {}
+
     def setup(self, svc: Service) -> None:
         """Declare subscriptions, publishers and watches (before the liveliness token)."""
 
@@ -903,7 +1007,8 @@ def run_service(app: ServiceApp, *, session: Any | None = None, install_signals:
     """Run ``app``: open the session, ``setup``, declare the liveliness token and start the
     status, run the ``loop`` until SIGINT/SIGTERM or :meth:`Service.stop`, ``teardown``, close.
     Returns the exit code."""
-    svc = Service(app.name, app.config, session=session, zenoh=app.zenoh_config())
+    svc = Service(app.name, app.config, session=session, zenoh=app.zenoh_config(),
+                  zenoh_extra=app.zenoh_extra())
     try:
         try:
             app.setup(svc)

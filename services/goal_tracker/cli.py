@@ -1,6 +1,7 @@
-"""``psm track`` (the goal tracker) and ``psm camera synth`` (the synthetic camera).
+"""``psm track`` (the goal tracker), ``psm camera synth`` (the synthetic camera) and ``psm camera
+stream`` (a real camera published for a tracker on another host).
 
-Both take the common bus flags (``--config``, ``--prefix``, ``--connect``, ``--set``…) and read
+All take the common bus flags (``--config``, ``--prefix``, ``--connect``, ``--set``…) and read
 the ``[goal_tracker]`` tables of the config; source flags are shortcuts for
 ``--set goal_tracker.camera.*``. Errors reach :func:`services.cli.dispatch` (one line, exit 2).
 """
@@ -52,6 +53,16 @@ def _cmd_camera_synth(args: argparse.Namespace) -> int:
     return camera_main(cfg, max_frames=args.max_frames)
 
 
+def _cmd_camera_stream(args: argparse.Namespace) -> int:
+    from services.bus.config import config_from_args
+    from services.goal_tracker.config import TrackerConfig
+
+    cfg = config_from_args(TrackerConfig, args, _source_overrides(args))
+    from services.goal_tracker.service import camera_main
+
+    return camera_main(cfg, max_frames=args.max_frames, stream=True)
+
+
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from services.goal_tracker.calibration import calibrate_from_images
 
@@ -61,7 +72,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: Any) -> None:
-    """Add ``track`` and ``camera {synth, calibrate}`` to the ``psm`` command line."""
+    """Add ``track`` and ``camera {synth, stream, calibrate}`` to the ``psm`` command line."""
     from services.bus.config import add_config_arguments
 
     p = subparsers.add_parser(
@@ -98,6 +109,22 @@ def register(subparsers: Any) -> None:
     s.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = never)")
     add_config_arguments(s)
     s.set_defaults(func=_cmd_camera_synth)
+
+    st = sub.add_parser(
+        "stream",
+        help="publish a real camera (device, file or URL) for a tracker elsewhere",
+        description="Publish the JPEG frames of a camera device, video file or stream URL on "
+        "<prefix>/camera/<id>/image, for a goal tracker with --source topic (on this host or "
+        "another). A dropped stream is reopened with backoff.",
+    )
+    st.add_argument("--source", choices=("device", "file", "url"),
+                    help="frame source (goal_tracker.camera.source)")
+    st.add_argument("--device", type=int, help="camera device index (implies --source device)")
+    st.add_argument("--uri", help="video file or stream URL (source file / url)")
+    st.add_argument("--camera-id", help="camera id of the image topic")
+    st.add_argument("--max-frames", type=int, default=0, help="stop after N frames (0 = never)")
+    add_config_arguments(st)
+    st.set_defaults(func=_cmd_camera_stream)
 
     c = sub.add_parser(
         "calibrate",

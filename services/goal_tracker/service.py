@@ -15,6 +15,7 @@ Liveliness token and status counters come from :class:`services.bus.runtime.Serv
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Any
@@ -22,6 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from services.bus.config import ConfigError
 from services.bus.messages import (
     CompressedImage,
     FaceBox,
@@ -51,6 +53,7 @@ from services.threads import limit_blas_threads, limit_opencv_threads
 
 SERVICE_NAME = "goal_tracker"
 CAMERA_SERVICE_NAME = "camera_synth"
+STREAM_CAMERA_SERVICE_NAME = "camera"
 
 
 def _timestamp(msg_ts: Any, stamp_ns: int) -> None:
@@ -66,6 +69,11 @@ def jpeg_image(image: np.ndarray, stamp_ns: int, frame_id: str, quality: int) ->
     msg = CompressedImage(frame_id=frame_id, data=buf.tobytes(), format="jpeg")
     _timestamp(msg.timestamp, stamp_ns)
     return msg
+
+
+#: Topic source: this many images in a row stamped before the last one are a camera whose clock
+#: restarted (e.g. an arm restarted in lockstep), followed from then on.
+_CLOCK_RESTART_FRAMES = 30
 
 
 def image_stamp_ns(msg: CompressedImage) -> int:
@@ -157,22 +165,35 @@ def open_capture(sec: GoalTrackerSection, stop: threading.Event) -> FrameSource 
 
 
 class _SimClock:
-    """Latest sim time from the arm's state (``<prefix>/arm/state``), like ROS ``/clock``."""
+    """Latest sim time from the arm's state (``<prefix>/arm/state``), like ROS ``/clock``. Only
+    states that continue the arm's stream move it (:class:`~services.robot.protocol.StateStream`):
+    a stale, replayed or forged state with a stamp far ahead would otherwise freeze the frames
+    until the real clock caught up; those are rejected by reason on the status."""
 
-    def __init__(self) -> None:
+    def __init__(self, svc: Any) -> None:
+        from services.robot.protocol import StateStream
+
         self.now_ns: int | None = None
+        self._svc = svc
+        self._stream = StateStream()
 
-    def on_state(self, msg: Any, _key: str) -> None:
-        t = int(msg.sim_time_ns or msg.stamp_ns)
-        if self.now_ns is None or t > self.now_ns:
-            self.now_ns = t
+    def on_state(self, msg: Any, key: str) -> None:
+        dt = float(msg.dt_s)
+        if not (math.isfinite(dt) and dt > 0.0):
+            self._svc.record_rejection(key, f"tick {msg.tick}: dt_s {dt} is not a positive number", "dt")
+            return
+        verdict, why = self._stream.check(int(msg.tick), int(msg.stamp_ns), dt)
+        if verdict in ("tick", "stamp"):
+            self._svc.record_rejection(key, why, verdict)
+            return
+        self.now_ns = int(msg.sim_time_ns or msg.stamp_ns)
 
     def __call__(self) -> int | None:
         return self.now_ns
 
 
 def _synthetic_on_bus(svc: Any, sec: GoalTrackerSection) -> SyntheticSource:
-    clock = _SimClock()
+    clock = _SimClock(svc)
     svc.subscribe(svc.keys.arm_state, clock.on_state, queue_size=16)
     return SyntheticSource(
         build_synthetic_camera(sec),
@@ -224,11 +245,22 @@ class GoalTrackerService(ServiceApp):
         elif source is None:
             queue_source = QueueSource(f"topic {keys.camera_image(cam.camera_id).key}", cam.topic_max_pending)
 
+            last = [-1, 0]  # the last image's stamp [ns], images stamped before it in a row
+
             def on_image(msg: CompressedImage, key: str) -> None:
+                # An image stamped before the last one is stale (a replay, a forged stamp) and
+                # rejected, unless that many come in a row: the camera's clock restarted.
+                stamp = image_stamp_ns(msg)
+                if stamp < last[0] and last[1] < _CLOCK_RESTART_FRAMES:
+                    last[1] += 1
+                    svc.record_rejection(key, f"image stamped {stamp} before the last one {last[0]}", "stamp")
+                    return
                 try:
-                    queue_source.push_jpeg(msg.data, image_stamp_ns(msg))
+                    queue_source.push_jpeg(msg.data, stamp)
                 except ValueError as exc:
-                    svc.record_rejection(key, str(exc))
+                    svc.record_rejection(key, str(exc), "image")
+                    return
+                last[0], last[1] = stamp, 0
 
             svc.subscribe(keys.camera_image(cam.camera_id), on_image)
             source = queue_source
@@ -348,13 +380,24 @@ def _publish_invalid(goal_pub: Any, seq: int, sec: GoalTrackerSection, stamp_ns:
     )
 
 
-def camera_main(config: TrackerConfig, *, max_frames: int = 0) -> int:
-    """Run the synthetic camera alone: publish JPEG frames on ``<prefix>/camera/<id>/image`` at
-    ``synthetic.fps`` (every frame, no throttling), with wall-clock or arm sim-clock frame times.
-    Stops at SIGINT/SIGTERM or after ``synthetic.frames`` / ``max_frames`` frames."""
+def camera_main(config: TrackerConfig, *, max_frames: int = 0, stream: bool = False) -> int:
+    """Run a camera alone: publish JPEG frames on ``<prefix>/camera/<id>/image`` (every frame,
+    no throttling) for a goal tracker with ``source = "topic"``, possibly on another host.
+    Without ``stream``: the synthetic camera at ``synthetic.fps`` with wall-clock or arm
+    sim-clock frame times. With ``stream``: the device, file or URL of
+    ``[goal_tracker.camera]`` (wall-clock frame times). Stops at SIGINT/SIGTERM or after
+    ``synthetic.frames`` / ``max_frames`` frames."""
     from services.bus.runtime import run_service
 
-    return run_service(SyntheticCameraService(config, max_frames=max_frames))
+    if not stream:
+        return run_service(SyntheticCameraService(config, max_frames=max_frames))
+    if config.goal_tracker.camera.source not in ("device", "file", "url"):
+        raise ConfigError(
+            "goal_tracker.camera.source",
+            "psm camera stream needs a device, file or url source "
+            f"(got {config.goal_tracker.camera.source!r})",
+        )
+    return run_service(StreamCameraService(config, max_frames=max_frames))
 
 
 class SyntheticCameraService(ServiceApp):
@@ -370,12 +413,16 @@ class SyntheticCameraService(ServiceApp):
         self.source: Any = None
         limit_opencv_threads(1)
 
-    def setup(self, svc: Service) -> None:
-        sec, cam = self.sec, self.sec.camera
+    def open_source(self, svc: Service) -> Any:
+        """The frame source of this camera."""
+        sec = self.sec
         if sec.synthetic.clock == "arm":
-            self.source = _synthetic_on_bus(svc, sec)
-        else:
-            self.source = SyntheticSource(build_synthetic_camera(sec), sec.synthetic.fps, stop=svc.stop_event)
+            return _synthetic_on_bus(svc, sec)
+        return SyntheticSource(build_synthetic_camera(sec), sec.synthetic.fps, stop=svc.stop_event)
+
+    def setup(self, svc: Service) -> None:
+        cam = self.sec.camera
+        self.source = self.open_source(svc)
         self.pub = svc.publisher(svc.keys.camera_image(cam.camera_id))
         svc.log.info(
             "publishing",
@@ -385,12 +432,28 @@ class SyntheticCameraService(ServiceApp):
     def loop(self, svc: Service) -> None:
         cam, source, limit = self.sec.camera, self.source, self.limit
         while not svc.stop_event.is_set() and not (limit and self.sent >= limit):
-            frame = source.read(0.2)
+            try:
+                frame = source.read(0.2)
+            except SourceEndedError:
+                svc.log.info("source ended", extra={"source": source.description})
+                break
             if frame is None:
                 continue
             self.pub.put(jpeg_image(frame.image, frame.stamp_ns, cam.camera_id, cam.jpeg_quality))
             self.sent += 1
 
     def teardown(self, svc: Service) -> None:
-        dropped = self.source.dropped if self.source is not None else 0
+        dropped = getattr(self.source, "dropped", 0)
         svc.log.info("camera done", extra={"frames": self.sent, "dropped": dropped})
+
+
+class StreamCameraService(SyntheticCameraService):
+    """A real camera on the bus: frames of the device, file or URL of ``[goal_tracker.camera]``
+    (``psm camera stream``), so the tracker can run on another host than the camera."""
+
+    name = STREAM_CAMERA_SERVICE_NAME
+
+    def open_source(self, svc: Service) -> Any:
+        source = open_capture(self.sec, svc.stop_event)
+        assert source is not None  # camera_main checked the source kind
+        return source

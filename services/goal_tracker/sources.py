@@ -329,8 +329,14 @@ class QueueSource:
         self.seq = 0
 
     def push_jpeg(self, data: bytes, stamp_ns: int) -> Frame:
-        """Decode ``data`` (JPEG/PNG bytes) and queue it; raises ``ValueError`` if undecodable."""
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        """Decode ``data`` (JPEG/PNG bytes) and queue it; raises ``ValueError`` if undecodable
+        (empty bytes included: OpenCV asserts on those)."""
+        image = None
+        if data:
+            try:
+                image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+            except cv2.error:
+                image = None
         if image is None:
             raise ValueError(f"cannot decode image ({len(data)} bytes)")
         frame = Frame(image, int(stamp_ns), self.seq, bytes(data))

@@ -106,6 +106,11 @@ class ObstacleMonitorSection(Section):
     )
     urdf: str = Field("", description="URDF of the robot ('' = the Franka Panda, as the arm)")
     frame_id: str = Field("base", min_length=1, description="frame of the obstacle positions")
+    rt_priority: int = Field(
+        0, ge=0, le=99,
+        description="SCHED_FIFO priority of the monitor process, 1-99 (0 = normal scheduling): it is "
+        "part of the control loop when the planner requires its predictions",
+    )
 
     @model_validator(mode="after")
     def _hysteresis(self) -> ObstacleMonitorSection:

@@ -27,8 +27,12 @@ Bad input never produces a prediction built on it: an obstacle command with NaN,
 size, an unknown shape, a non-unit quaternion, an empty id, a duplicate id on ADD or an unknown
 id on MOVE / REMOVE is rejected (the service status's ``rejected`` count and ``last_error``, the
 log, and per reason in the summary logged at exit) and the set is unchanged; an undecodable or
-non-finite arm state is rejected and not answered (the planner then has no fresh prediction and
-brakes).
+non-finite arm state, or one that does not continue the arm's stream (a tick that goes back or
+jumps, a stamp that disagrees with its tick: :class:`~services.robot.protocol.StateStream`), is
+rejected and not answered (the planner then has no fresh prediction and brakes); a planner goal
+that is not finite, lies beyond ``MAX_EXTENT_M``, is older than the last one or stamped more
+than :data:`GOAL_AHEAD_NS` ahead of the latest arm state is rejected.
+Every rejection is counted by reason on the status (``rejected_by_reason``).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from psm.obstacles import Obstacle, ObstacleError
+from psm.obstacles import MAX_EXTENT_M, Obstacle, ObstacleError
 from services.bus.messages import ArmState, CollisionPrediction, Goal, ObstacleCommand, encoding_for
 from services.bus.runtime import Service, ServiceApp, run_service
 from services.obstacle_monitor.config import ObstacleMonitorConfig
@@ -50,11 +54,18 @@ from services.obstacle_monitor.scene import (
     scene_update,
     shape_enum,
 )
+from services.robot.protocol import StateStream
 from services.threads import limit_blas_threads
 
 SERVICE_NAME = "obstacle_monitor"
 
-__all__ = ["SERVICE_NAME", "ObstacleMonitorService", "main", "prediction_message"]
+_ACTIONS = frozenset(ObstacleCommand.Action.values())
+
+#: A planner goal is stamped with the arm state it was chosen at: one stamped further ahead of
+#: the latest arm state than this [ns] is from no planner (it would hide every real update).
+GOAL_AHEAD_NS = 1_000_000_000
+
+__all__ = ["GOAL_AHEAD_NS", "SERVICE_NAME", "ObstacleMonitorService", "main", "prediction_message"]
 
 
 def prediction_message(p: Prediction, seq: int, out: CollisionPrediction) -> CollisionPrediction:
@@ -90,6 +101,10 @@ class ObstacleMonitorService(ServiceApp):
         self.config: ObstacleMonitorConfig = config
         sec = config.obstacle_monitor
         self.section = sec
+        from services.threads import set_realtime_priority
+
+        # Before the session opens: zenoh's threads inherit the policy.
+        self._rt_problem = set_realtime_priority(sec.rt_priority, config.clock)
         robot = None
         if sec.clearance:
             from services.robot.model import RobotModel
@@ -104,6 +119,10 @@ class ObstacleMonitorService(ServiceApp):
         self._set_seq = 0
         self._last_scene_ns = 0
         self.rejected_commands: dict[str, int] = {}  # reason -> count
+        # The arm's stream (a stale, replayed or forged state gets no prediction) and the
+        # latest planner goal's stamp (an older one is stale).
+        self._stream = StateStream()
+        self._goal_stamp = -1
 
     # ------------------------------------------------------------------ setup
     def setup(self, svc: Service) -> None:
@@ -112,6 +131,8 @@ class ObstacleMonitorService(ServiceApp):
         import zenoh
 
         self.svc = svc
+        if self._rt_problem:
+            svc.log.warning(self._rt_problem + "; running with normal scheduling")
         keys = svc.keys
         self._pred_pub = svc.publisher(keys.collision)
         self._set_pub = svc.publisher(keys.obstacles)
@@ -169,24 +190,36 @@ class ObstacleMonitorService(ServiceApp):
 
     def _on_command(self, cmd: ObstacleCommand, key: str) -> None:
         reason = self.apply_command(cmd)
-        what = f"{ObstacleCommand.Action.Name(cmd.action)} {cmd.obstacle.id or cmd.id!r}"
+        action = ObstacleCommand.Action.Name(cmd.action) if cmd.action in _ACTIONS else f"action {cmd.action}"
+        what = f"{action} {cmd.obstacle.id or cmd.id!r}"
         if reason:
             with self._lock:
                 self.rejected_commands[reason] = self.rejected_commands.get(reason, 0) + 1
-            self.svc.record_rejection(key, f"obstacle command {what}: {reason}")
+            self.svc.record_rejection(key, f"obstacle command {what}: {reason}", reason)
         else:
             self.svc.log.info("obstacle set changed", extra={"command": what, "obstacles": len(self.monitor)})
 
     def _on_goal(self, msg: Goal, key: str) -> None:
         p = msg.position
         g = np.array([p.x, p.y, p.z])
+        stamp = int(msg.stamp_ns)
         with self._lock:
-            if not msg.valid:
+            ahead = stamp - self._stream.last_stamp if self._stream.last_tick >= 0 else 0
+            if stamp < self._goal_stamp:
+                self.svc.record_rejection(key, "planner goal older than the last one", "stamp")
+            elif ahead > GOAL_AHEAD_NS:
+                self.svc.record_rejection(
+                    key, f"planner goal stamped {ahead * 1e-9:.3g} s ahead of the arm's clock", "stamp")
+            elif not msg.valid:
                 self.monitor.set_goal(None)
-            elif np.isfinite(g).all():
-                self.monitor.set_goal(g)
+                self._goal_stamp = stamp
+            elif not np.isfinite(g).all():
+                self.svc.record_rejection(key, "planner goal is not finite", "non_finite")
+            elif float(np.abs(g).max()) > MAX_EXTENT_M:
+                self.svc.record_rejection(key, f"planner goal beyond {MAX_EXTENT_M:g} m", "range")
             else:
-                self.svc.record_rejection(key, "planner goal is not finite")
+                self.monitor.set_goal(g)
+                self._goal_stamp = stamp
 
     def current_obstacles(self) -> list[Obstacle]:
         """The obstacles with their positions at the latest arm state."""
@@ -199,13 +232,14 @@ class ObstacleMonitorService(ServiceApp):
         payload = sample.payload.to_bytes()
         with self._lock:
             if str(sample.encoding) != self._state_encoding:
-                self.svc.record_rejection(self._state_key, f"encoding {sample.encoding} is not psm.ArmState")
+                self.svc.record_rejection(
+                    self._state_key, f"encoding {sample.encoding} is not psm.ArmState", "encoding")
                 return
             st = self._state
             try:
                 st.ParseFromString(payload)
             except Exception as exc:
-                self.svc.record_rejection(self._state_key, f"malformed ArmState: {exc}")
+                self.svc.record_rejection(self._state_key, f"malformed ArmState: {exc}", "malformed")
                 return
             msg = self.predict(st)
             if msg is None:
@@ -222,7 +256,12 @@ class ObstacleMonitorService(ServiceApp):
         # sum() of the joints is NaN/inf when one is: the joints are checked without an array.
         finite = math.isfinite(float(x.sum())) and math.isfinite(sum(st.q) + sum(st.dq))
         if not (finite and dt > 0.0):
-            self.svc.record_rejection(self._state_key, f"tick {st.tick}: non-finite state or dt_s")
+            self.svc.record_rejection(
+                self._state_key, f"tick {st.tick}: non-finite state or dt_s", "non_finite")
+            return None
+        verdict, why = self._stream.check(int(st.tick), int(st.stamp_ns), dt)
+        if verdict in ("tick", "stamp"):
+            self.svc.record_rejection(self._state_key, why, verdict)
             return None
         # The joints (repeated fields) become arrays only on the ticks the clearance is computed.
         pred = self.monitor.check(int(st.stamp_ns), int(st.tick), x[:3], x[3:], st.q, st.dq, dt)

@@ -19,6 +19,7 @@ from typing import Literal
 from pydantic import Field
 
 from services.bus.config import ConfigError, Section, ServiceConfig
+from services.robot.protocol import MAX_TICK_GAP, RESYNC_AFTER, STAMP_TOLERANCE_S
 
 __all__ = ["PlannerConfig", "PlannerSection"]
 
@@ -31,20 +32,29 @@ class PlannerSection(Section):
     cache_dir: str = Field("out/models", description="learned models are cached here ('' = no cache)")
     status_rate_hz: float = Field(20.0, ge=1.0, le=100.0, description="PlannerStatus rate [Hz]")
     exit_when_done: bool = Field(
-        False, description="exit (code 0) once the task is done or aborted, after linger_s"
+        False, description="exit once the task is done (code 0) or aborted (code 1), after linger_s"
     )
     linger_s: float = Field(
         0.5, ge=0.0, le=60.0, description="keep answering states this long after the task ends [s]"
     )
     summary_file: str = Field("", description="write the task summary (JSON) here at exit")
+    progress_file: str = Field(
+        "",
+        description="the task's progress (JSON), written atomically at each step transition and read at "
+        "start: a restarted planner resumes the step that was running ('' = every start runs the task "
+        "from its first step)",
+    )
     max_tick_gap: int = Field(
-        50, ge=1, description="an arm state more than this many ticks ahead of the last is rejected"
+        MAX_TICK_GAP, ge=1, description="an arm state more than this many ticks ahead of the last is rejected"
     )
     resync_after: int = Field(
-        25, ge=1, description="after this many states rejected in a row, follow the new stream (arm restart)"
+        RESYNC_AFTER, ge=1,
+        description="after this many rejected states in a row that form a stream of their own, follow it "
+        "(arm restart)",
     )
     stamp_tolerance_s: float = Field(
-        0.0005, gt=0.0, description="a state stamp this far off tick x dt from the last is rejected [s]"
+        STAMP_TOLERANCE_S, gt=0.0,
+        description="a state stamp this far off tick x dt from the last is rejected [s]",
     )
     source: str = Field("planner", min_length=1, description="the commands' source field")
     rt_priority: int = Field(

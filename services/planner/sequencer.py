@@ -59,6 +59,7 @@ from services.planner.task import StepSpec, TaskSpec
 __all__ = [
     "CollisionInfo",
     "CollisionPolicy",
+    "CompletedStep",
     "DemoFigures",
     "GoalBook",
     "PlannerOutput",
@@ -218,6 +219,25 @@ class StepReport:
 
 
 @dataclass
+class CompletedStep:
+    """A step completed by an earlier planner process (from its progress file): its times [ns,
+    stack clock] and figures (:meth:`StepReport.summary`), reported unchanged."""
+
+    start_ns: int
+    end_ns: int
+    figures: dict[str, Any]
+
+    @property
+    def success(self) -> bool:
+        """Whether the step succeeded."""
+        return bool(self.figures.get("success"))
+
+    def summary(self) -> dict[str, Any]:
+        """The figures as they were reported."""
+        return dict(self.figures)
+
+
+@dataclass
 class _LiveGoal:
     position: NDArray[np.float64]
     stamp_ns: int
@@ -240,22 +260,32 @@ class GoalBook:
         self.live: dict[str, _LiveGoal] = {}
         self.rejected = 0
         self.last_rejection = ""
+        self.last_rejection_kind = ""  #: the reason of the last rejection: non_finite, workspace, stamp
         self._timeout_ns = int(task.goal_timeout_s * 1e9)
 
-    def update(self, name: str, position: Any, stamp_ns: int, valid: bool = True, reason: str = "") -> str:
-        """Offer a live goal; returns ``""`` if accepted, else why it was rejected (counted)."""
+    def update(
+        self, name: str, position: Any, stamp_ns: int, valid: bool = True, reason: str = "",
+        now_ns: int | None = None,
+    ) -> str:
+        """Offer a live goal; returns ``""`` if accepted, else why it was rejected (counted).
+        ``now_ns`` [ns]: the stack's clock (the latest arm state), when known: a goal stamped more
+        than ``goal_timeout_s`` ahead of it is rejected (it would hide every real update)."""
         p = np.asarray(position, dtype=float)
-        problem = ""
+        problem, kind = "", ""
         if p.shape != (3,) or not np.all(np.isfinite(p)):
-            problem = "position is not 3 finite numbers"
+            problem, kind = "position is not 3 finite numbers", "non_finite"
         elif valid and not self.task.workspace.contains(p):
-            problem = f"position {np.round(p, 3).tolist()} is outside the workspace"
+            where = [round(float(c), 3) for c in p]
+            problem, kind = f"position {where} is outside the workspace", "workspace"
         prev = self.live.get(name)
         if not problem and prev is not None and stamp_ns < prev.stamp_ns:
-            problem = "stamp older than the last update"
+            problem, kind = "stamp older than the last update", "stamp"
+        if not problem and now_ns is not None and stamp_ns - now_ns > self._timeout_ns:
+            problem, kind = f"stamp {(stamp_ns - now_ns) * 1e-9:.3g} s ahead of the stack's clock", "stamp"
         if problem:
             self.rejected += 1
             self.last_rejection = f"goal {name}: {problem}"
+            self.last_rejection_kind = kind
             if prev is not None and valid:
                 # A goal that left the workspace (or turned non-finite) is not used any more.
                 prev.valid, prev.reason = False, problem
@@ -326,7 +356,10 @@ class TaskRunner:
         self.state = IDLE
         self.detail = ""
         self.index = -1
-        self.reports: list[StepReport] = []
+        self.reports: list[StepReport | CompletedStep] = []
+        #: Resumes of this task by a restarted planner: ``{"at_step": i, "tick": k}`` each.
+        self.resumes: list[dict[str, Any]] = []
+        self._resume_at: int | None = None
         self._events: list[TaskEventRecord] = []
         self._ctrl: PSMController | None = None
         self._orient: OrientationTracker | None = None
@@ -360,10 +393,11 @@ class TaskRunner:
 
     # ------------------------------------------------------------------ inputs
     def update_goal(
-        self, name: str, position: Any, stamp_ns: int, valid: bool = True, reason: str = ""
+        self, name: str, position: Any, stamp_ns: int, valid: bool = True, reason: str = "",
+        now_ns: int | None = None,
     ) -> str:
         """A live goal update (see :meth:`GoalBook.update`); ``""`` if accepted."""
-        return self.goals.update(name, position, stamp_ns, valid, reason)
+        return self.goals.update(name, position, stamp_ns, valid, reason, now_ns)
 
     def set_collision(self, info: CollisionInfo) -> None:
         """The obstacle monitor's latest prediction (applied from the next :meth:`step`)."""
@@ -408,6 +442,32 @@ class TaskRunner:
         """The goal in use (with the step's offset) [m], or None."""
         return self._goal
 
+    def resume(
+        self, next_index: int, completed: list[dict[str, Any]], resumes: list[dict[str, Any]] | None = None
+    ) -> None:
+        """Before the first :meth:`step`: continue a task an earlier planner process ran
+        (:mod:`services.planner.progress`). Steps ``0 .. next_index - 1`` are done (their
+        ``completed`` records, ``start_ns``/``end_ns``/``summary``, are reported as they were);
+        the first state starts step ``next_index`` from the arm's state, like any step start
+        (``next_index == len(steps)``: the task is done, the arm is held)."""
+        if self.state != IDLE:
+            raise RuntimeError("resume() must come before the first step()")
+        if not 0 <= next_index <= len(self.task.steps) or len(completed) != next_index:
+            raise ValueError(f"cannot resume at step {next_index} with {len(completed)} completed")
+        self.reports = [
+            CompletedStep(int(c["start_ns"]), int(c["end_ns"]), dict(c["summary"])) for c in completed
+        ]
+        self.resumes = list(resumes or [])
+        self._resume_at = next_index
+
+    def completed_steps(self, upto: int) -> list[dict[str, Any]]:
+        """The records of steps ``0 .. upto - 1`` (done) for a progress file: ``start_ns``,
+        ``end_ns`` and ``summary``."""
+        return [
+            {"start_ns": int(r.start_ns), "end_ns": int(r.end_ns), "summary": r.summary()}
+            for r in self.reports[:upto]
+        ]
+
     def restart_step(self) -> None:
         """Start the active step afresh from the next state (the arm's state stream restarted);
         its report so far is discarded."""
@@ -445,8 +505,11 @@ class TaskRunner:
         self._tick, self._now_ns = tick, now_ns
         if self.state == IDLE:
             self._last_quat = np.asarray(quat, dtype=float).copy()  # held until a step sets one
-            self._event("STARTED", f"task {self.task.name}: {len(self.task.steps)} steps")
-            self._start_step(0, now_ns, x, quat)
+            if self._resume_at is None:
+                self._event("STARTED", f"task {self.task.name}: {len(self.task.steps)} steps")
+                self._start_step(0, now_ns, x, quat)
+            else:
+                self._start_resumed(self._resume_at, now_ns, x, quat)
         elif self._restart:
             self._restart = False
             self.reports.pop()
@@ -675,6 +738,27 @@ class TaskRunner:
         return PlannerOutput(a, self._last_quat, np.zeros(3))
 
     # ------------------------------------------------------------------ transitions
+    def _start_resumed(
+        self, index: int, now_ns: int, x: NDArray[np.float64], quat: NDArray[np.float64]
+    ) -> None:
+        """The first state of a resumed task: step ``index`` starts from it (or, the task being
+        done, the arm is held where it is)."""
+        n = len(self.task.steps)
+        self.resumes.append({"at_step": index, "tick": self._tick})
+        if index >= n:
+            self.index = n - 1
+            self._phase, self.state, self.detail = "done", DONE, ""
+            self._hold_target = np.asarray(x, dtype=float).copy()
+            self._hold_quat = self._last_quat
+            self._event("STARTED", f"task {self.task.name} resumed: all {n} steps were completed")
+            return
+        self._event(
+            "STARTED",
+            f"task {self.task.name} resumed at step {index + 1}/{n} ({self.task.steps[index].name}) "
+            f"from the arm's state, {index} completed before",
+        )
+        self._start_step(index, now_ns, x, quat)
+
     def _start_step(self, index: int, now_ns: int, x: NDArray[np.float64], quat: NDArray[np.float64]) -> None:
         self.index = index
         spec = self.task.steps[index]
@@ -807,6 +891,7 @@ class TaskRunner:
             "success": self.state == DONE and all(r.success for r in self.reports),
             "duration_s": (done[-1].end_ns - self.reports[0].start_ns) * 1e-9 if done else None,
             "steps": steps,
+            "resumes": list(self.resumes),
         }
 
     def summary_json(self) -> str:

@@ -38,8 +38,17 @@ that goes back or jumps ahead by more than ``max_tick_gap``, or a stamp that dis
 ``tick × dt`` is rejected (counted, logged rate-limited) and not answered; a malformed goal, a
 non-finite one, one in another frame or outside the workspace is rejected and never used. A
 state that repeats the last answered one exactly (a lockstep arm re-offering it) gets the same
-command again. After ``resync_after`` rejected states in a row the planner follows the new
-stream (an arm that restarted) and the active step restarts from its state.
+command again. After ``resync_after`` rejected states in a row that form a stream of their own
+(:class:`~services.robot.protocol.StateStream`) the planner follows the new stream (an arm that
+restarted, states back after an outage) and the active step restarts from its state; random or
+stale states never form one. A prediction about a state that does not fit the arm's stream, and
+a goal stamped more than ``goal_timeout_s`` ahead of the stack's clock, are rejected too.
+
+Restarts (``progress_file``): after each step transition the loop thread writes the task's
+progress (:mod:`services.planner.progress`) once the transition's events and gripper command are
+published; a planner started again reads it and, when its first arm state is of the same arm
+run, resumes at the step that was running, from the arm's state (the steps completed before are
+not redone and stay in the summary).
 """
 
 from __future__ import annotations
@@ -68,7 +77,9 @@ from services.bus.messages import (
 from services.bus.runtime import Service, ServiceApp, run_service
 from services.planner.config import PlannerConfig
 from services.planner.models import DEMOS_DIR, ModelCache, load_task_models
+from services.planner.progress import ProgressError, TaskProgress, read_progress, write_progress
 from services.planner.sequencer import CollisionInfo, CollisionPolicy, TaskRunner
+from services.robot.protocol import StateStream
 from services.threads import limit_blas_threads
 
 SERVICE_NAME = "planner"
@@ -93,8 +104,8 @@ class PlannerService(ServiceApp):
 
     def __init__(self, config: PlannerConfig) -> None:
         super().__init__(config)
-        from services.arm.service import set_realtime_priority
         from services.tasks.feeding import load_feeding
+        from services.threads import set_realtime_priority
 
         limit_blas_threads(1)
         self.config: PlannerConfig = config
@@ -127,7 +138,7 @@ class PlannerService(ServiceApp):
         self.frame_id = scene.frame_id
         # After the models are learned (never fit at real-time priority) and before the bus
         # opens, so Zenoh's threads (the state is answered on one) inherit it.
-        self._rt_problem = set_realtime_priority(sec.rt_priority)
+        self._rt_problem = set_realtime_priority(sec.rt_priority, config.clock)
         self._lock = threading.Lock()
         self._state = ArmState()
         self._cmd = ArmCommand(
@@ -140,7 +151,10 @@ class PlannerService(ServiceApp):
         self._last_tick = -1
         self._last_stamp = 0
         self._last_reply = b""
-        self._reject_run = 0
+        self._stream = StateStream(
+            sec.max_tick_gap, round(sec.stamp_tolerance_s * 1e9), sec.resync_after
+        )
+        self._dt_s = 0.0  # the period of the last state answered [s]
         self._seq = 0
         self.answered = 0
         self.rejected_states = 0
@@ -154,6 +168,17 @@ class PlannerService(ServiceApp):
         self._v = np.zeros(3)
         self._a = np.zeros(3)
         self._q = np.zeros(4)
+        # Restarts: the progress an earlier planner left (decided on the first state), why it
+        # cannot be used, and the arm's period of the states answered [ns].
+        self._progress: TaskProgress | None = None
+        self._progress_problem = ""
+        if sec.progress_file:
+            try:
+                self._progress = read_progress(sec.progress_file, self.task_config.task)
+            except ProgressError as exc:
+                self._progress_problem = str(exc)
+        self._dt_ns = 0
+        self._wake = threading.Event()  # a transition to publish (and to write to the progress file)
 
     # ------------------------------------------------------------------ setup
     def setup(self, svc: Service) -> None:
@@ -169,6 +194,8 @@ class PlannerService(ServiceApp):
         self._status_pub = svc.publisher(keys.planner_status)
         self._event_pub = svc.publisher(keys.task_events)
         self._gripper_pub = svc.publisher(keys.gripper_command)
+        # Before the state subscriber: the first answer may publish the goal at once.
+        self._goal_pub = svc.publisher(keys.planner_goal)
         self._state_key = keys.arm_state.key
         sub = svc.session.declare_subscriber(
             self._state_key, zenoh.handlers.Callback(self._on_state, indirect=False)
@@ -176,7 +203,6 @@ class PlannerService(ServiceApp):
         svc.on_close(sub.undeclare)
         self._goals_prefix = keys.goals_all.key[:-1]
         svc.subscribe(keys.goals_all, self._on_goal)
-        self._goal_pub = svc.publisher(keys.planner_goal)
         if self._check_collisions:
             self._pred_key = keys.collision.key
             pred_sub = svc.session.declare_subscriber(
@@ -187,16 +213,18 @@ class PlannerService(ServiceApp):
             self.runner.set_monitor_alive(False)
             svc.watch_liveliness([self.config.planner.monitor_service], self._on_monitor)
         task = self.task_config.task
+        if self._progress_problem:
+            svc.log.warning("progress file not used: the task starts from its first step",
+                            extra={"reason": self._progress_problem})
         svc.log.info(
             "planner ready",
             extra={"task": task.name, "steps": ",".join(task.sequence), "models": len(self.models.models)},
         )
 
     # ------------------------------------------------------------------ inputs
-    def _reject_state(self, reason: str) -> None:
+    def _reject_state(self, reason: str, kind: str) -> None:
         self.rejected_states += 1
-        self._reject_run += 1
-        self.svc.record_rejection(self._state_key, reason)
+        self.svc.record_rejection(self._state_key, reason, kind)
 
     def _on_state(self, sample: Any) -> None:
         """Zenoh's receive thread: answer the state (see the module docstring)."""
@@ -204,7 +232,7 @@ class PlannerService(ServiceApp):
         payload = sample.payload.to_bytes()
         if str(sample.encoding) != self._state_encoding:
             with self._lock:
-                self._reject_state(f"encoding {sample.encoding} is not psm.ArmState")
+                self._reject_state(f"encoding {sample.encoding} is not psm.ArmState", "encoding")
             return
         with self._lock:
             if not self._parse_state(payload):
@@ -228,7 +256,7 @@ class PlannerService(ServiceApp):
         try:
             self._state.ParseFromString(payload)
         except Exception as exc:
-            self._reject_state(f"malformed ArmState ({len(payload)} bytes): {exc}")
+            self._reject_state(f"malformed ArmState ({len(payload)} bytes): {exc}", "malformed")
             return False
         return True
 
@@ -278,22 +306,30 @@ class PlannerService(ServiceApp):
         payload = sample.payload.to_bytes()
         with self._lock:
             if str(sample.encoding) != self._pred_encoding:
-                self.rejected_predictions += 1
-                self.svc.record_rejection(self._pred_key, f"encoding {sample.encoding}")
+                self._reject_prediction(f"encoding {sample.encoding}", "encoding")
                 return
             pr = self._pred
             try:
                 pr.ParseFromString(payload)
             except Exception as exc:
-                self.rejected_predictions += 1
-                self.svc.record_rejection(self._pred_key, f"malformed CollisionPrediction: {exc}")
+                self._reject_prediction(f"malformed CollisionPrediction: {exc}", "malformed")
                 return
             stop = np.array(pr.stop_position, dtype=float) if pr.stop_position else np.full(3, np.nan)
             if stop.shape != (3,) or np.isinf(stop).any():
-                self.rejected_predictions += 1
-                self.svc.record_rejection(self._pred_key, "stop_position is not 3 numbers (NaN = none)")
+                self._reject_prediction("stop_position is not 3 numbers (NaN = none)", "stop_position")
+                return
+            if math.isnan(pr.min_clearance_m):
+                self._reject_prediction("min_clearance_m is NaN", "non_finite")
                 return
             tick = int(pr.state_tick)
+            if not self._stream.follows(tick, int(pr.stamp_ns), self._dt_s):
+                # A prediction about a state the arm did not publish (far from its last tick, or
+                # a stamp that disagrees with it): never used, and never lets a forged tick hide
+                # the real predictions behind it.
+                self._reject_prediction(
+                    f"prediction for tick {tick} (stamp {int(pr.stamp_ns)}) does not fit the arm's "
+                    f"stream at tick {self._stream.last_tick}", "tick")
+                return
             if tick < self._pred_tick:
                 return  # an older prediction arriving late
             self._pred_tick = tick
@@ -314,6 +350,10 @@ class PlannerService(ServiceApp):
                 self.waited_states += 1
                 self._answer_parked()
 
+    def _reject_prediction(self, reason: str, kind: str) -> None:
+        self.rejected_predictions += 1
+        self.svc.record_rejection(self._pred_key, reason, kind)
+
     def _on_monitor(self, name: str, alive: bool) -> None:
         with self._lock:
             self.runner.set_monitor_alive(alive)
@@ -324,7 +364,6 @@ class PlannerService(ServiceApp):
     def _answer(self, st: ArmState) -> bytes | None:
         """The command bytes answering ``st``, or None when it is rejected (under the lock)."""
         tick, stamp = int(st.tick), int(st.stamp_ns)
-        sec = self.config.planner
         if tick == self._last_tick and stamp == self._last_stamp and self._last_reply:
             self.duplicate_states += 1
             return self._last_reply
@@ -335,14 +374,14 @@ class PlannerService(ServiceApp):
         qx, qy, qz, qw = o.x, o.y, o.z, o.w
         dt = float(st.dt_s)
         if not (math.isfinite(dt) and dt > 0.0):
-            self._reject_state(f"tick {tick}: dt_s {dt} is not a positive number")
+            self._reject_state(f"tick {tick}: dt_s {dt} is not a positive number", "dt")
             return None
         isfinite = math.isfinite
         if not (
             isfinite(px) and isfinite(py) and isfinite(pz) and isfinite(vx) and isfinite(vy)
             and isfinite(vz) and isfinite(qx) and isfinite(qy) and isfinite(qz) and isfinite(qw)
         ):
-            self._reject_state(f"tick {tick}: non-finite end-effector state")
+            self._reject_state(f"tick {tick}: non-finite end-effector state", "non_finite")
             return None
         x = self._x
         x[0], x[1], x[2] = px, py, pz
@@ -354,29 +393,23 @@ class PlannerService(ServiceApp):
         acc[0], acc[1], acc[2] = a.x, a.y, a.z
         nq = math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
         if abs(nq - 1.0) > 0.01:
-            self._reject_state(f"tick {tick}: orientation quaternion norm {nq:.3g}")
+            self._reject_state(f"tick {tick}: orientation quaternion norm {nq:.3g}", "quaternion")
             return None
-        if self._last_tick >= 0:
-            gap = tick - self._last_tick
-            problem = ""
-            if gap <= 0:
-                problem = f"tick {tick} does not follow the last answered tick {self._last_tick}"
-            elif gap > sec.max_tick_gap:
-                problem = f"tick jumped from {self._last_tick} to {tick} (more than {sec.max_tick_gap})"
-            elif abs((stamp - self._last_stamp) - gap * dt * 1e9) > sec.stamp_tolerance_s * 1e9:
-                problem = (
-                    f"tick {tick}: stamp {(stamp - self._last_stamp) * 1e-9:.4f} s after the last, "
-                    f"expected {gap * dt:.4f} s"
-                )
-            if problem:
-                if self._reject_run + 1 < sec.resync_after:
-                    self._reject_state(problem)
-                    return None
-                self.svc.log.warning("following a new arm state stream", extra={"reason": problem})
-                self.runner.restart_step()
-        self._reject_run = 0
+        verdict, why = self._stream.check(tick, stamp, dt)
+        if verdict in ("tick", "stamp"):
+            self._reject_state(why, verdict)
+            return None
+        if verdict == "resync":
+            self.svc.log.warning("following a new arm state stream", extra={"reason": why})
+            self.runner.restart_step()
+        self._dt_s = dt
+        if self._dt_ns == 0:
+            self._first_state(tick, stamp, dt)
         out = self.runner.step(stamp, x, vv, q, dt, tick=tick, measured_accel=acc)
-        self._events.extend(self.runner.drain_events())
+        events = self.runner.drain_events()
+        if events:
+            self._events.extend(events)
+            self._wake.set()
         cmd = self._cmd
         self._seq += 1
         cmd.stamp_ns, cmd.tick, cmd.seq = stamp, tick, self._seq
@@ -392,6 +425,51 @@ class PlannerService(ServiceApp):
         self.answered += 1
         return reply
 
+    def _first_state(self, tick: int, stamp: int, dt: float) -> None:
+        """The first state answered (under the lock): resume the task from the progress file if
+        the file is of this run of the arm (:meth:`TaskProgress.same_arm_run`)."""
+        self._dt_ns = round(dt * 1e9)
+        p, self._progress = self._progress, None
+        if p is None:
+            return
+        tolerance = round(self.config.planner.stamp_tolerance_s * 1e9)
+        if not p.same_arm_run(stamp, tick, self._dt_ns, tolerance):
+            self.svc.log.info(
+                "progress file of another arm run: the task starts from its first step",
+                extra={"file": self.config.planner.progress_file, "tick": tick, "file_tick": p.tick},
+            )
+            return
+        self.runner.resume(p.next_index, p.completed, p.resumes)
+        self.svc.log.warning(
+            "resuming the task",
+            extra={"next_step": p.next_index, "completed": p.next_index, "tick": tick,
+                   "resumes": len(p.resumes) + 1},
+        )
+
+    def _write_progress(self, ev: Any) -> None:
+        """After a transition's events are published (loop thread): the task's progress up to
+        the step ``ev`` completed (``STEP_COMPLETED``, ``COMPLETED``)."""
+        path = self.config.planner.progress_file
+        if not path or self._dt_ns == 0:
+            return
+        n = len(self.task_config.task.steps)
+        upto = n if ev.kind == "COMPLETED" else ev.step_index + 1
+        with self._lock:
+            progress = TaskProgress(
+                task=self.task_config.task.name,
+                steps=list(self.task_config.task.sequence),
+                next_index=upto,
+                arm_origin_ns=int(ev.stamp_ns) - int(ev.tick) * self._dt_ns,
+                dt_ns=self._dt_ns,
+                tick=int(ev.tick),
+                completed=self.runner.completed_steps(upto),
+                resumes=list(self.runner.resumes),
+            )
+        try:
+            write_progress(path, progress)
+        except OSError as exc:
+            self.svc.record_error(f"cannot write the progress file {path}: {exc.strerror}")
+
     def _on_goal(self, msg: Goal, key: str) -> None:
         name = msg.name or key[len(self._goals_prefix) :]
         p = msg.position
@@ -399,14 +477,16 @@ class PlannerService(ServiceApp):
             if msg.frame_id and msg.frame_id != self.frame_id:
                 self.runner.goals.rejected += 1
                 self.svc.record_rejection(
-                    key, f"goal {name} in frame {msg.frame_id!r}, expected {self.frame_id!r}"
+                    key, f"goal {name} in frame {msg.frame_id!r}, expected {self.frame_id!r}", "frame"
                 )
                 return
+            now = self._last_stamp if self._last_tick >= 0 else None
             problem = self.runner.update_goal(
-                name, (p.x, p.y, p.z), int(msg.stamp_ns), bool(msg.valid), msg.invalid_reason
+                name, (p.x, p.y, p.z), int(msg.stamp_ns), bool(msg.valid), msg.invalid_reason, now_ns=now
             )
+            kind = self.runner.goals.last_rejection_kind
         if problem:
-            self.svc.record_rejection(key, f"goal {name}: {problem}")
+            self.svc.record_rejection(key, f"goal {name}: {problem}", kind)
 
     # ------------------------------------------------------------------ loop
     def loop(self, svc: Service) -> None:
@@ -414,11 +494,15 @@ class PlannerService(ServiceApp):
         task ends when ``exit_when_done``."""
         sec = self.config.planner
         period = 1.0 / sec.status_rate_hz
-        next_t = time.monotonic()
+        next_t = time.monotonic() + period
         while not svc.stop_event.is_set():
-            next_t += period
-            svc.wait(max(0.0, next_t - time.monotonic()))
+            # Woken by a transition: its events (and the progress file) go out at once.
+            self._wake.wait(max(0.0, next_t - time.monotonic()))
+            self._wake.clear()
             self._publish_events()
+            if time.monotonic() < next_t:
+                continue
+            next_t += period
             self._publish_status()
             if self.runner.state in ("DONE", "FAULT") and sec.exit_when_done:
                 if self._ended_at is None:
@@ -427,6 +511,8 @@ class PlannerService(ServiceApp):
                         "task ended", extra={"state": self.runner.state, "detail": self.runner.detail}
                     )
                 elif time.monotonic() - self._ended_at >= sec.linger_s:
+                    # A task that failed is a failed process (docker: restart on-failure).
+                    self.exit_code = 0 if self.runner.state == "DONE" else 1
                     break
         self._publish_events()
         self._publish_status()
@@ -453,6 +539,8 @@ class PlannerService(ServiceApp):
                         stamp_ns=ev.stamp_ns, action=action, step=ev.step, source=self.config.planner.source
                     )
                 )
+            if ev.kind in ("STEP_COMPLETED", "COMPLETED"):
+                self._write_progress(ev)
             if ev.kind in (
                 "STARTED",
                 "STEP_COMPLETED",

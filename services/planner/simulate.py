@@ -11,6 +11,7 @@ the tests) run in seconds; the end-to-end tests and ``psm up`` run the same thin
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -23,6 +24,7 @@ from services.planner.sequencer import CollisionInfo, CollisionPolicy, TaskRunne
 
 __all__ = [
     "CollisionFn",
+    "GoalUpdate",
     "LiveGoalFn",
     "SimulationResult",
     "monitor_predictor",
@@ -32,6 +34,19 @@ __all__ = [
 
 #: Live goals at sim time ``t`` [s]: ``{name: (position (3,) [m], valid)}``.
 LiveGoalFn = Callable[[float], Mapping[str, tuple[Any, bool]]]
+
+@dataclass(frozen=True)
+class GoalUpdate:
+    """A live goal update offered to the planner before it answers the state of ``tick``:
+    ``position (3,)`` [m], the update's own ``stamp_ns`` [ns] and validity (a stack run's
+    ``goals/<name>`` messages, at the ticks its planner received them)."""
+
+    tick: int
+    name: str
+    position: tuple[float, float, float]
+    stamp_ns: int
+    valid: bool = True
+
 
 #: The obstacle monitor in process: ``(stamp_ns, tick, x (3,), v (3,), goal (3,) or None, q (n,),
 #: dq (n,), dt_s)`` → the prediction for that state (None: no prediction this tick).
@@ -76,10 +91,13 @@ def segment_predictor(obstacles: Sequence[Any], inflation_m: float, horizon_s: f
 
 @dataclass
 class SimulationResult:
-    """``summary``: :meth:`TaskRunner.summary`; ``trace``: per tick ``t (N,)`` [s], ``x, v (N, 3)``,
-    ``a_cmd (N, 3)``, ``quat, quat_ref (N, 4)``, ``goal (N, 3)`` (NaN while none), ``step (N,)``,
-    ``state (N,)`` (the runner's state name), ``q (N, n)`` joints [rad];
-    ``events``: every transition."""
+    """``summary``: :meth:`TaskRunner.summary`; ``trace``: per tick ``tick (N,)``, ``t (N,)`` [s],
+    ``x, v (N, 3)`` [m, m/s], ``a (N, 3)`` the measured end-effector acceleration [m/s²],
+    ``a_cmd (N, 3)`` the command [m/s²], ``omega_cmd (N, 3)`` [rad/s], ``quat, quat_ref (N, 4)``,
+    ``goal (N, 3)`` (NaN while none), ``step (N,)``, ``state (N,)`` (the runner's state name),
+    ``q, dq (N, n)`` joints [rad, rad/s]; with ``collision`` also ``collision (N,)`` (bool),
+    ``protective_stop (N,)`` and ``min_clearance (N,)`` [m] of the prediction applied at each tick
+    (NaN where none); ``events``: every transition."""
 
     summary: dict[str, Any]
     trace: dict[str, NDArray[Any]]
@@ -93,6 +111,7 @@ def simulate_task(
     *,
     goals: LiveGoalFn | None = None,
     goal_rate_hz: float = 30.0,
+    goal_updates: Sequence[GoalUpdate] = (),
     start_pose: str | list[float] = "ready",
     dt_s: float = 0.002,
     max_s: float = 120.0,
@@ -106,11 +125,15 @@ def simulate_task(
     Args:
         models: from :func:`services.planner.models.load_task_models`.
         goals: live goal positions over sim time, sampled at ``goal_rate_hz`` (a camera's rate).
+        goal_updates: live goal updates at given ticks (e.g. those a stack run's planner
+            received, :func:`experiments.harness.goal_schedule`), in order.
         start_pose: the arm's start pose (named or joints).
         dt_s: control period [s].
         arm: further :class:`~services.arm.sim.ArmSimConfig` fields.
         collision: the obstacle monitor in process (e.g. :func:`segment_predictor`): called on
-            every state, its prediction is applied at once (as in a lockstep run over the bus).
+            every state with the planner's last goal (as the planner publishes it: the last goal
+            it used, kept while it has none), its prediction is applied at once (as in a
+            lockstep run over the bus).
         prediction_max_age_s: the planner's ``prediction_max_age_s`` (with ``collision``).
     """
     from services.arm.config import ArmSection
@@ -125,10 +148,17 @@ def simulate_task(
         config.task, config.scene.positions(), models.models, models.profiles, models.demos, collision=policy
     )
     goal_every = max(1, round(1.0 / (goal_rate_hz * dt_s))) if goals is not None else 0
+    pending = sorted(goal_updates, key=lambda u: u.tick)
+    next_update = 0
     n_max = int(max_s / dt_s)
-    names = ("t", "x", "v", "a_cmd", "quat", "quat_ref", "goal", "step", "state", "q")
+    names = ("tick", "t", "x", "v", "a", "a_cmd", "omega_cmd", "quat", "quat_ref", "goal", "step", "state",
+             "q", "dq")
+    if collision is not None:
+        names += ("collision", "protective_stop", "min_clearance")
     rows: dict[str, list[Any]] = {k: [] for k in names}
     events: list[Any] = []
+    last_stamp: int | None = None  # the last state answered: the planner's clock for goal stamps
+    monitor_goal = None  # the goal the planner last published (kept while it has none)
     for k in range(n_max):
         snap = sim.snapshot()
         t_ns = snap.time_ns
@@ -136,10 +166,17 @@ def simulate_task(
             assert goals is not None
             for name, (pos, valid) in goals(t_ns * 1e-9).items():
                 runner.update_goal(name, pos, t_ns, valid)
+        while next_update < len(pending) and pending[next_update].tick <= snap.tick:
+            u = pending[next_update]
+            runner.update_goal(u.name, u.position, u.stamp_ns, u.valid, now_ns=last_stamp)
+            next_update += 1
         ee = snap.ee
+        info = None
         if collision is not None:
+            if runner.goal is not None:
+                monitor_goal = runner.goal
             info = collision(
-                t_ns, snap.tick, ee.position, ee.linear_velocity, runner.goal, snap.q, snap.dq, dt_s
+                t_ns, snap.tick, ee.position, ee.linear_velocity, monitor_goal, snap.q, snap.dq, dt_s
             )
             if info is not None:
                 runner.set_collision(info)
@@ -152,18 +189,27 @@ def simulate_task(
             tick=snap.tick,
             measured_accel=ee.linear_acceleration,
         )
+        last_stamp = t_ns
         events.extend(runner.drain_events())
         g = runner.goal
+        rows["tick"].append(snap.tick)
         rows["t"].append(t_ns * 1e-9)
         rows["x"].append(ee.position)
         rows["v"].append(ee.linear_velocity)
+        rows["a"].append(ee.linear_acceleration)
         rows["a_cmd"].append(out.acceleration)
+        rows["omega_cmd"].append(out.angular_velocity)
         rows["quat"].append(ee.quat_xyzw)
         rows["quat_ref"].append(out.orientation)
         rows["goal"].append(g if g is not None else np.full(3, np.nan))
         rows["step"].append(runner.index)
         rows["state"].append(runner.state)
         rows["q"].append(snap.q)
+        rows["dq"].append(snap.dq)
+        if collision is not None:
+            rows["collision"].append(bool(info.collision) if info is not None else False)
+            rows["protective_stop"].append(bool(info.protective_stop) if info is not None else False)
+            rows["min_clearance"].append(float(info.min_clearance_m) if info is not None else math.nan)
         if runner.state in ("DONE", "FAULT"):
             break
         sim.submit(

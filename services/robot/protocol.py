@@ -5,7 +5,9 @@ loop.
   command into a :class:`Command`, not yet range-checked), :func:`frame_transforms` (link frames
   for Foxglove);
 * the controller side (planner, probe, tests): :func:`state_from_message` (an ``ArmState`` as an
-  :class:`ArmStateData` of numpy arrays), :func:`cartesian_command`, :func:`joint_command`.
+  :class:`ArmStateData` of numpy arrays), :func:`cartesian_command`, :func:`joint_command`;
+* every follower of the arm's states (planner, obstacle monitor, the synthetic camera's clock):
+  :class:`StateStream`, which states continue the arm's stream.
 
 Units and frames: joint vectors ``(n,)`` in rad, rad/s, rad/s²; Cartesian quantities ``(3,)``
 in the base frame ``frame_id`` at the end-effector origin (m, m/s, m/s², rad/s, rad/s²);
@@ -65,7 +67,7 @@ class Command:
 
 class CommandRejectedError(ValueError):
     """A command failed decoding or validation; ``reason`` is a short counter key
-    (``malformed``, ``non_finite``, ``out_of_range``)."""
+    (``malformed``, ``non_finite``, ``out_of_range``, ``tick``)."""
 
     def __init__(self, reason: str, message: str) -> None:
         super().__init__(message)
@@ -356,7 +358,102 @@ def frame_transforms(
     return out
 
 
+#: Defaults of the stream checks (the planner's ``max_tick_gap``, ``stamp_tolerance_s`` and
+#: ``resync_after``; the obstacle monitor and the synthetic camera's clock use them as they are).
+MAX_TICK_GAP = 50
+STAMP_TOLERANCE_S = 0.0005
+RESYNC_AFTER = 25
+
+
+class StateStream:
+    """Which arm states continue the arm's stream, for the services that follow it.
+
+    A state continues the stream when its tick is after the last accepted one by at most
+    ``max_tick_gap`` ticks and its stamp is ``(tick - last tick) * dt_s`` after the last one's
+    within ``stamp_tolerance_ns``; the first state starts the stream. Anything else is rejected
+    with a reason — ``tick`` (not after the last one, or too far ahead) or ``stamp`` — as a
+    stale, replayed, reordered or forged state is. A run of ``resync_after`` rejected states
+    that form a stream of their own (each continues the one before it, or re-offers it as a
+    lockstep arm does) is followed instead (verdict ``resync``): the arm restarted, or its
+    states came back after an outage longer than ``max_tick_gap``. Random or stale states never
+    form such a run, so they never move the stream. Not thread-safe (the caller's lock).
+
+    Example::
+
+        stream = StateStream(max_tick_gap=50, stamp_tolerance_ns=500_000, resync_after=25)
+        verdict, why = stream.check(state.tick, state.stamp_ns, state.dt_s)
+        # "" accepted, "repeat" the last state again, "resync" accepted as a new stream,
+        # "tick" or "stamp" rejected
+    """
+
+    def __init__(
+        self,
+        max_tick_gap: int = MAX_TICK_GAP,
+        stamp_tolerance_ns: int = round(STAMP_TOLERANCE_S * 1e9),
+        resync_after: int = RESYNC_AFTER,
+    ) -> None:
+        self.max_tick_gap = max_tick_gap
+        self.stamp_tolerance_ns = stamp_tolerance_ns
+        self.resync_after = resync_after
+        self.last_tick = -1  #: tick of the last accepted state (-1: none yet)
+        self.last_stamp = 0  #: its stamp [ns]
+        self._cand_tick = -1  # the last rejected state (the run of a possible new stream)
+        self._cand_stamp = 0
+        self._run = 0
+
+    def _follows(self, tick: int, stamp: int, last_tick: int, last_stamp: int, dt_s: float) -> str:
+        """``""`` if ``(tick, stamp)`` continues ``(last_tick, last_stamp)``, else why not."""
+        gap = tick - last_tick
+        if gap <= 0:
+            return f"tick {tick} does not follow the last tick {last_tick}"
+        if gap > self.max_tick_gap:
+            return f"tick jumped from {last_tick} to {tick} (more than {self.max_tick_gap})"
+        if abs((stamp - last_stamp) - gap * dt_s * 1e9) > self.stamp_tolerance_ns:
+            return (f"tick {tick}: stamp {(stamp - last_stamp) * 1e-9:.4f} s after the last, "
+                    f"expected {gap * dt_s:.4f} s")
+        return ""
+
+    def check(self, tick: int, stamp_ns: int, dt_s: float) -> tuple[str, str]:
+        """``(verdict, why)`` for the state ``(tick, stamp_ns)`` with period ``dt_s`` [s] (a
+        positive number: the caller checks it); an accepted state becomes the last one."""
+        if tick == self.last_tick and stamp_ns == self.last_stamp:
+            return "repeat", ""  # the same state again (a lockstep arm re-offers it)
+        if self.last_tick >= 0:
+            why = self._follows(tick, stamp_ns, self.last_tick, self.last_stamp, dt_s)
+            if why:
+                kind = "stamp" if why.startswith(f"tick {tick}: stamp") else "tick"
+                again = tick == self._cand_tick and stamp_ns == self._cand_stamp
+                if self._cand_tick >= 0 and (
+                    again or not self._follows(tick, stamp_ns, self._cand_tick, self._cand_stamp, dt_s)
+                ):
+                    self._run += 1
+                else:
+                    self._run = 1
+                self._cand_tick, self._cand_stamp = tick, stamp_ns
+                if self._run < self.resync_after:
+                    return kind, why
+                self.last_tick, self.last_stamp, self._run, self._cand_tick = tick, stamp_ns, 0, -1
+                return "resync", why
+        self.last_tick, self.last_stamp, self._run, self._cand_tick = tick, stamp_ns, 0, -1
+        return "", ""
+
+    def follows(self, tick: int, stamp_ns: int, dt_s: float) -> bool:
+        """True if a message about state ``(tick, stamp_ns)`` — e.g. a collision prediction —
+        fits the stream: its tick is at most ``max_tick_gap`` ahead of the last state's (any
+        earlier one: a late message is the caller's to judge by its age) and its stamp is the
+        one the stream gives that tick; True while no state is known. Changes nothing."""
+        if self.last_tick < 0:
+            return True
+        gap = tick - self.last_tick
+        return gap <= self.max_tick_gap and (
+            abs((stamp_ns - self.last_stamp) - gap * dt_s * 1e9) <= self.stamp_tolerance_ns
+        )
+
+
 __all__ = [
+    "MAX_TICK_GAP",
+    "RESYNC_AFTER",
+    "STAMP_TOLERANCE_S",
     "ArmStateData",
     "Command",
     "CommandMode",
@@ -364,6 +461,7 @@ __all__ = [
     "EEState",
     "StateEncoder",
     "StateLike",
+    "StateStream",
     "cartesian_command",
     "command_from_message",
     "frame_transforms",

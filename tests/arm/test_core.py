@@ -276,7 +276,7 @@ def test_invalid_commands_rejected_and_not_applied(robot: RobotModel, cmd, reaso
 def test_future_and_stale_commands(robot: RobotModel) -> None:
     sim = ArmSim(robot, ArmSimConfig())
     assert not sim.submit(Command(5, CommandMode.JOINT, joint_acceleration=np.zeros(7)))
-    assert sim.counters["rejected_malformed"] == 1
+    assert sim.counters["rejected_tick"] == 1
     for _ in range(3):
         sim.step()
     assert sim.submit(Command(2, CommandMode.JOINT, joint_acceleration=np.zeros(7)))

@@ -61,3 +61,53 @@ def test_same_content_as_reference_writer(tmp_path: Path) -> None:
         n = sum(1 for _ in NonSeekingReader(io.BytesIO(fast), validate_crcs=True)
                 .iter_messages(log_time_order=False))
         assert n == len(msgs)
+
+
+class _Disk(io.BytesIO):
+    """A stream that refuses a write once ``budget`` bytes are used (a disk filling up)."""
+
+    def __init__(self, budget: int) -> None:
+        super().__init__()
+        self.budget = budget
+
+    def write(self, data) -> int:  # type: ignore[no-untyped-def, override]
+        if self.tell() + len(data) > self.budget:
+            raise OSError(28, "No space left on device")
+        return super().write(data)
+
+
+def test_a_failed_write_leaves_the_writer_able_to_end_the_file_validly() -> None:
+    disk = _Disk(1 << 30)
+    w = FastMcapWriter(disk, chunk_size=4096, compression="")
+    w.start(profile="", library="test")
+    cid = w.register_channel(topic="t", message_encoding="x", schema_id=0, metadata={})
+    for i in range(2000):
+        w.add_message(cid, i, b"m" * 50, i, i)
+    w.flush()
+    whole = w.message_count
+    # The disk fills during the next chunk: the position stays at the last whole chunk.
+    disk.budget = disk.tell() + 100
+    try:
+        for i in range(2000, 4000):
+            w.add_message(cid, i, b"m" * 50, i, i)
+        raise AssertionError("the chunk write did not fail")
+    except OSError:
+        pass
+    assert w.position == disk.tell()  # the refused chunk is not counted as written
+    dropped = w.abort_chunk()
+    assert w.message_count == whole and dropped > 0
+    # Even the end fails at first (too little room), then succeeds from the same place.
+    disk.budget = w.position + 40
+    try:
+        w.finish()
+        raise AssertionError("finish did not fail")
+    except OSError:
+        pass
+    end = w.rewind()
+    disk.truncate(end)
+    disk.seek(end)
+    disk.budget = 1 << 30
+    w.finish()
+    r = SeekingReader(io.BytesIO(disk.getvalue()), validate_crcs=True)
+    assert r.get_summary().statistics.message_count == whole  # type: ignore[union-attr]
+    assert [m.sequence for _s, _c, m in r.iter_messages()] == list(range(whole))

@@ -41,11 +41,12 @@ def test_learn_from_npz_with_uniform_segments(tmp_path: Path, reach_demo) -> Non
     t, X = reach_demo
     np.savez(tmp_path / "demo.npz", t=t, X=X)
     r = run_psm("learn", str(tmp_path / "demo.npz"), "-o", str(tmp_path / "m.json"), "--segments", "5",
-                "--sync", "brake", "--start-shift")
+                "--sync", "brake", "--start-shift", "--velocity-extrema")
     assert r.returncode == 0, r.stderr
     data = json.loads((tmp_path / "m.json").read_text())
-    assert data["format"] == "psm-model" and len(data["dimensions"][0]["k"]) == 5
+    assert data["format"] == "psm-model" and len(data["dimensions"][0]["k"]) == 6  # 5 + the speed peak
     assert data["parameters"]["sync_mode"] == "brake" and data["parameters"]["start_shift"] is True
+    assert data["parameters"]["velocity_extrema"] is True
     r = run_psm("learn", str(tmp_path / "demo.npz"), "-o", str(tmp_path / "m2.json"),
                 "--auto-tolerance", "0.001")
     assert r.returncode == 0, r.stderr

@@ -208,7 +208,7 @@ def test_synthetic_camera_takes_frame_times_from_the_arm_clock(bus: Procs, sessi
     assert got == []
     for tick in range(16):  # sim time 0 .. 150 ms in 10 ms steps, irregular wall pacing
         payload, encoding = encode(
-            ArmState(stamp_ns=tick * 10_000_000, tick=tick, sim_time_ns=tick * 10_000_000)
+            ArmState(stamp_ns=tick * 10_000_000, tick=tick, sim_time_ns=tick * 10_000_000, dt_s=0.01)
         )
         pub.put(payload, encoding=zenoh.Encoding(encoding))
         time.sleep(0.02 if tick % 3 else 0.1)
@@ -217,3 +217,45 @@ def test_synthetic_camera_takes_frame_times_from_the_arm_clock(bus: Procs, sessi
     wait_until(lambda: len(got) >= 5, 5.0, "5 frames")
     sub.undeclare()
     assert got == [0, 33_333_333, 66_666_667, 100_000_000, 133_333_333]
+
+
+def test_camera_stream_publishes_a_video_file_for_a_tracker_elsewhere(
+    bus: Procs, session: object, tmp_path: Path
+) -> None:
+    """``psm camera stream --source file``: every frame of the file is published as JPEG on the
+    camera topic (the path of a real camera to a tracker on another host); the file's end stops
+    it cleanly, and a source that is not a camera is one error line."""
+    import cv2
+
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (320, 240))
+    for i in range(12):
+        writer.write(np.full((240, 320, 3), 10 * i, np.uint8))
+    writer.release()
+    keys = Keys("psm")
+    sizes: list[tuple[int, int]] = []
+    lock = threading.Lock()
+
+    def on_image(sample: object) -> None:
+        msg = decode(sample.payload.to_bytes(), str(sample.encoding), CompressedImage)  # type: ignore[attr-defined]
+        img = cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_COLOR)
+        with lock:
+            sizes.append(img.shape[:2])
+
+    sub = session.declare_subscriber(keys.camera_image("cam0").key, on_image)  # type: ignore[attr-defined]
+    cam = bus.start(
+        "camera", TRACK, "camera", "stream", "--source", "file", "--uri", str(video), *bus.bus_args()
+    )
+    wait_until(lambda: cam.poll() is not None, 30.0, "the stream to end with the file")
+    assert cam.returncode == 0, bus.log(cam)
+    assert "source ended" in bus.log(cam)
+    wait_until(lambda: len(sizes) >= 12, 5.0, "12 frames")
+    sub.undeclare()
+    assert sizes == [(240, 320)] * 12
+
+    bad = bus.start("camera-bad", TRACK, "camera", "stream", "--set", "goal_tracker.camera.source=topic",
+                    *bus.bus_args())
+    wait_until(lambda: bad.poll() is not None, 30.0, "the bad stream to exit")
+    assert bad.returncode == 2
+    lines = [ln for ln in bus.log(bad).splitlines() if ln.strip()]
+    assert len(lines) == 1 and "goal_tracker.camera.source" in lines[0], lines

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from services.bus.config import ConfigError, load_config
-from services.bus.messages import ArmState, Obstacle, ObstacleCommand
+from services.bus.messages import ArmState, Goal, Obstacle, ObstacleCommand, vec3
 from services.obstacle_monitor.config import ObstacleMonitorConfig
 from services.obstacle_monitor.scene import obstacle_from_message, obstacle_set_message, scene_update
 from services.obstacle_monitor.service import ObstacleMonitorService
@@ -31,7 +31,7 @@ class _Svc:
     def __init__(self) -> None:
         self.rejections: list[str] = []
 
-    def record_rejection(self, key: str, reason: str) -> None:
+    def record_rejection(self, key: str, reason: str, kind: str = "invalid") -> None:
         self.rejections.append(reason)
 
 
@@ -166,6 +166,8 @@ def test_a_moving_obstacle_is_predicted_forward_on_the_stack_clock() -> None:
     p = moving.predict(_state(1, (0.5, 0.0, 0.3)))
     assert p is not None and p.collision and p.obstacle_id == "ball"
     (ball,) = still.current_obstacles()
+    for k in range(50, 500, 50):  # the arm's stream goes on (a state at most 50 ticks apart)
+        still.predict(_state(k, (0.5, 0.0, 0.3)))
     p = still.predict(_state(500, (0.5, 0.0, 0.3)))  # t = 1 s: the ball is at x = 0.5
     assert p is not None and p.collision
     assert np.allclose(still.current_obstacles()[0].position, [0.5, 0.25, 0.3], atol=1e-9)
@@ -191,3 +193,29 @@ def test_set_and_scene_messages_round_trip() -> None:
     assert e.id == "obstacle/wall" and e.frame_id == "base" and len(e.cubes) == 2
     assert e.cubes[1].size.y == pytest.approx(0.03 + 0.36) and e.cubes[1].color.a < 1.0
     assert scene.deletions[0].id == "obstacle/old"
+
+
+def test_states_off_the_arms_stream_get_no_prediction() -> None:
+    """A tick that goes back or jumps, or a stamp that disagrees with the tick, is rejected by
+    reason; the stream goes on with the real states."""
+    m = _monitor(clearance=False)
+    assert m.predict(_state(10, (0.5, 0.0, 0.3))) is not None
+    jumped = _state(10_000, (0.5, 0.0, 0.3))
+    back = _state(3, (0.5, 0.0, 0.3))
+    stamped = _state(11, (0.5, 0.0, 0.3))
+    stamped.stamp_ns += 10_000_000
+    for bad in (jumped, back, stamped):
+        assert m.predict(bad) is None
+    assert len(m.svc.rejections) == 3  # type: ignore[attr-defined]
+    assert m.predict(_state(11, (0.5, 0.0, 0.3))) is not None
+
+
+def test_planner_goals_that_are_stale_or_absurd_are_rejected() -> None:
+    m = _monitor(clearance=False)
+    m._on_goal(Goal(stamp_ns=100, valid=True, position=vec3(0.5, 0.5, 0.3)), "psm/planner/goal")
+    for bad in (Goal(stamp_ns=50, valid=True, position=vec3(0.4, 0.4, 0.3)),
+                Goal(stamp_ns=200, valid=True, position=vec3(1e308, 0.0, 0.0)),
+                Goal(stamp_ns=200, valid=True, position=vec3(math.nan, 0.0, 0.0))):
+        m._on_goal(bad, "psm/planner/goal")
+    assert m.monitor._goal is not None and np.allclose(m.monitor._goal, [0.5, 0.5, 0.3])
+    assert len(m.svc.rejections) == 3  # type: ignore[attr-defined]

@@ -19,14 +19,14 @@ from typing import Any
 
 import numpy as np
 import pytest
-from planner.test_feeding_stack import (
+from stack_helpers import (
     ROOT,
-    _check_task,
-    _up,
-    _up_args,
     arm_speeds,
+    check_task,
     client_session,
     kill_mid_motion,
+    up,
+    up_args,
     up_port,
 )
 
@@ -67,9 +67,9 @@ def _kinds(events: list[Any]) -> list[str]:
 
 
 def test_the_papers_obstacle_scenario_through_the_stack(tmp_path: Path) -> None:
-    rc, log, summary = _up(tmp_path, f'obstacle_monitor.obstacles_file="{WALL_FILE}"', timeout_s=400)
+    rc, log, summary = up(tmp_path, f'obstacle_monitor.obstacles_file="{WALL_FILE}"', timeout_s=400)
     assert rc == 0, log
-    task = _check_task(summary, log)
+    task = check_task(summary, log)
     rec = _read(tmp_path / "run.mcap")
     x = _ee(rec["arm/state"])
     depth = _depth_inside(x, WALL_CENTRE, WALL_HALF + MARGIN)
@@ -104,7 +104,7 @@ def test_an_obstacle_moved_into_the_path_mid_motion_is_avoided(tmp_path: Path) -
     from services.bus.messages import Keys, ObstacleCommand, TaskEvent, encode
 
     away = '{id = "wall", shape = "box", position_m = [0.5, -0.6, 0.115], size_m = [0.4, 0.03, 0.23]}'
-    args = _up_args(tmp_path, "lockstep", f"obstacle_monitor.obstacles=[{away}]")
+    args = up_args(tmp_path, "lockstep", f"obstacle_monitor.obstacles=[{away}]")
     port = up_port(args)
     prefix = f"feed{port}"
     up = ManagedProcess("up", psm_argv(args), tmp_path / "up.log", cwd=ROOT)
@@ -141,7 +141,7 @@ def test_an_obstacle_moved_into_the_path_mid_motion_is_avoided(tmp_path: Path) -
     log = up.log_text()
     assert rc == 0, log
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-    _check_task(summary, log)
+    check_task(summary, log)
     assert moved, "reach_person never started"
     rec = _read(tmp_path / "run.mcap")
     sets = rec["obstacles"]
@@ -163,7 +163,7 @@ def test_an_obstacle_next_to_the_forearm_stops_the_arm(tmp_path: Path) -> None:
     from services.bus.messages import PlannerStatus
 
     post = '{id = "post", shape = "sphere", position_m = [0.123, -0.183, 0.539], size_m = [0.08, 0, 0]}'
-    args = [*_up_args(tmp_path, "lockstep", f"obstacle_monitor.obstacles=[{post}]"), "--duration", "45"]
+    args = [*up_args(tmp_path, "lockstep", f"obstacle_monitor.obstacles=[{post}]"), "--duration", "45"]
     up = ManagedProcess("up", psm_argv(args), tmp_path / "up.log", cwd=ROOT)
     try:
         rc = up.wait(120)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from services.bus.config import load_config
-from services.bus.messages import ArmCommand, ArmState, Goal
+from services.bus.messages import ArmCommand, ArmState, Goal, Vec3
 from services.planner.config import PlannerConfig
 from services.planner.service import PlannerService
 
@@ -33,7 +33,7 @@ class _FakeService:
         self.log = logging.getLogger("test.planner")
         self.counters = _Counters()
 
-    def record_rejection(self, _key: str, reason: str) -> None:
+    def record_rejection(self, _key: str, reason: str, _kind: str = "invalid") -> None:
         self.rejections.append(reason)
 
 
@@ -295,3 +295,41 @@ def test_a_predicted_collision_sets_the_stops_and_a_clear_path_removes_them() ->
     p._on_prediction(_Sample(_prediction(2)))
     p._on_state(_Sample(_state(2)))
     assert "PATH_CLEAR" in [e.kind for e in p._events]
+
+
+def test_random_states_never_take_the_stream_over() -> None:
+    """Fuzzed states (random ticks and stamps, far more than resync_after in a row) are rejected
+    and never followed: the real stream goes on, no step restarts."""
+    rng = np.random.default_rng(7)
+    p, _fake = _planner(resync_after=5)
+    for k in range(10):
+        assert p._answer(_state(k)) is not None
+    for _ in range(200):
+        fuzz = _state(int(rng.integers(0, 1 << 40)))
+        fuzz.stamp_ns = int(rng.integers(0, 1 << 62))
+        assert p._answer(fuzz) is None
+    assert p._answer(_state(10)) is not None  # the real stream, unchanged
+    assert p.rejected_states == 200 and len(p.runner.reports) == 1
+
+
+def test_a_prediction_off_the_arms_stream_is_rejected() -> None:
+    p, _fake, _cmd, _goal = _watched_planner("realtime")
+    p._on_monitor("obstacle_monitor", True)
+    p._on_state(_Sample(_state(0)))
+    forged = _prediction(10_000)  # a tick the arm is far from
+    stale = _prediction(1)
+    stale.stamp_ns += 7_000_000  # a stamp that is not tick 1's
+    for bad in (forged, stale):
+        p._on_prediction(_Sample(bad))
+    assert p.rejected_predictions == 2 and p.runner.collision is None
+    p._on_prediction(_Sample(_prediction(1)))  # the real one still gets through
+    assert p.runner.collision is not None and p.runner.collision.tick == 1
+
+
+def test_a_goal_from_the_future_is_rejected() -> None:
+    p, fake = _planner()
+    p._answer(_state(0))
+    p._on_goal(Goal(name="person", stamp_ns=10**18, valid=True, frame_id="base",
+                    position=Vec3(x=0.4, y=0.3, z=0.4)), "psm/goals/person")
+    assert "ahead of the stack's clock" in fake.rejections[-1]
+    assert "person" not in p.runner.goals.live

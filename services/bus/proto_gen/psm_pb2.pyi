@@ -430,7 +430,7 @@ class GripperCommand(_message.Message):
     def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., action: _Optional[_Union[GripperCommand.Action, str]] = ..., step: _Optional[str] = ..., source: _Optional[str] = ...) -> None: ...
 
 class ServiceStatus(_message.Message):
-    __slots__ = ("stamp_ns", "seq", "service", "state", "received", "rejected", "published", "errors", "dropped", "uptime_s", "last_error", "version", "queued")
+    __slots__ = ("stamp_ns", "seq", "service", "state", "received", "rejected", "published", "errors", "dropped", "uptime_s", "last_error", "version", "queued", "rejected_by_reason")
     class State(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         STATE_UNSPECIFIED: _ClassVar[ServiceStatus.State]
@@ -443,6 +443,13 @@ class ServiceStatus(_message.Message):
     RUNNING: ServiceStatus.State
     DEGRADED: ServiceStatus.State
     STOPPING: ServiceStatus.State
+    class RejectedByReasonEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: int
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[int] = ...) -> None: ...
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     SERVICE_FIELD_NUMBER: _ClassVar[int]
@@ -456,6 +463,7 @@ class ServiceStatus(_message.Message):
     LAST_ERROR_FIELD_NUMBER: _ClassVar[int]
     VERSION_FIELD_NUMBER: _ClassVar[int]
     QUEUED_FIELD_NUMBER: _ClassVar[int]
+    REJECTED_BY_REASON_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     seq: int
     service: str
@@ -469,4 +477,5 @@ class ServiceStatus(_message.Message):
     last_error: str
     version: str
     queued: int
-    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., service: _Optional[str] = ..., state: _Optional[_Union[ServiceStatus.State, str]] = ..., received: _Optional[int] = ..., rejected: _Optional[int] = ..., published: _Optional[int] = ..., errors: _Optional[int] = ..., dropped: _Optional[int] = ..., uptime_s: _Optional[float] = ..., last_error: _Optional[str] = ..., version: _Optional[str] = ..., queued: _Optional[int] = ...) -> None: ...
+    rejected_by_reason: _containers.ScalarMap[str, int]
+    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., service: _Optional[str] = ..., state: _Optional[_Union[ServiceStatus.State, str]] = ..., received: _Optional[int] = ..., rejected: _Optional[int] = ..., published: _Optional[int] = ..., errors: _Optional[int] = ..., dropped: _Optional[int] = ..., uptime_s: _Optional[float] = ..., last_error: _Optional[str] = ..., version: _Optional[str] = ..., queued: _Optional[int] = ..., rejected_by_reason: _Optional[_Mapping[str, int]] = ...) -> None: ...
