@@ -14,7 +14,8 @@ Methods (:data:`METHODS`):
 
 * ``psm`` -- ``PhaseSpaceModel.fit(t, X)`` defaults;
 * ``psm_ext`` -- the defaults with ``velocity_extrema=True`` (each dimension's speed peaks and
-  dips kept as via-points with the unsmoothed demonstration's velocity);
+  dips kept as via-points with the unsmoothed demonstration's velocity) and the controller's
+  ``rest_retime`` (a dimension brought to rest inside a segment goes on at its nominal pace);
 * ``dmp10`` / ``dmp50`` -- ``movement_primitives.dmp.DMP`` with 10 / 50 weights per dimension;
 * ``dmp50_scaled`` -- DMP-50 with its forcing term scaled per dimension by
   ``(g - x₀) / (g_demo - x₀_demo)``, the amplitude scaling of the original DMP formulation
@@ -249,6 +250,8 @@ def run_method(
         opts: dict[str, Any] = {}
         if disturbance is not None:
             opts["disturbance"] = disturbance
+        if fitted.key == "psm_ext":
+            opts["rest_retime"] = True
         if goal_fn is not None:
             opts["goal_fn"] = goal_fn
         elif goal is not None:

@@ -24,6 +24,11 @@ pushes, moved starts and moving goals (paper §III-C..F; corrected equations in 
 * **start retiming** (option ``start_retime``): at the first step the slope of the segment the
   motion starts in is re-solved so that the segment keeps its nominal duration from the actual
   start (as a DMP keeps its execution time);
+* **rest retiming** (option ``rest_retime``, off by default): a dimension that comes to rest
+  inside a segment (held still, stopped by a push) re-solves that segment's slope so that it
+  takes the nominal time left from there (the segment's nominal duration times the fraction of
+  its length still ahead). Without it a dimension at rest short of a via-point at rest crawls
+  on the stability margin κ alone, and the synchronisation holds the others back for it;
 * **collision stop** (eq. 15): a per-dimension request "stop at x_ob" decelerates with
   ``−v²/(2(x_ob − x))`` while the obstacle lies between the state and the via-point;
 * **saturation**: the segment law (with the synchronisation term) is limited to
@@ -112,6 +117,7 @@ class PSMController:
         sync_time: float = 0.1,
         start_retime: bool = False,
         start_shift: bool = False,
+        rest_retime: bool = False,
     ) -> None:
         validate_sync(sync_mode, sync_time)
         self._D = len(chains)
@@ -122,6 +128,7 @@ class PSMController:
         self._sync_time = float(sync_time)
         self._start_retime = bool(start_retime)
         self._start_shift = bool(start_shift)
+        self._rest_retime = bool(rest_retime)
         # weight of a start displacement at each via-point: the nominal time left there / total
         self._shift_weight = [
             [float(sum(c.durations[j:])) / max(float(sum(c.durations)), 1e-300) for j in range(len(c.k) + 1)]
@@ -234,6 +241,7 @@ class PSMController:
         self._retime_pending = [True] * D
         self._shift_pending = [True] * D
         self._k_start: list[tuple[int, float] | None] = [None] * D
+        self._at_rest = [True] * D  # rest retiming acts when a dimension comes to rest
         self._offsets = [list(c.offsets) for c in self._chains]
         self._vels = [list(c.velocities) for c in self._chains]
         # "scale" synchronisation: leads of the last step and the part of each lead a goal change
@@ -397,6 +405,23 @@ class PSMController:
                         k_new = k_for_duration(x, v_eff, x_n, v_n, chain.durations[j], k_hi)
                         if math.isfinite(k_new):
                             self._k_start[d] = (j, k_new)
+            elif self._rest_retime:
+                at_rest = abs(v) <= self._vel_tol
+                if at_rest and not self._at_rest[d] and not chain.hold and chain.durations[j] > 0.0:
+                    # Brought to rest inside a segment (held, or pushed to a stop): from rest a
+                    # segment towards a via-point at rest would crawl on the margin κ alone.
+                    # Re-solve its slope so that it takes the nominal time left from here: the
+                    # segment's nominal duration times the fraction of its length still ahead.
+                    span = abs(offsets[j + 1] - offsets[j])
+                    left = min(1.0, abs(delta) / span) if span > 0.0 else 1.0
+                    k_hi = k_limit(0.0, v_n, delta, chain.kappa[j])
+                    if k_hi > -math.inf:
+                        t_left = max(left * chain.durations[j], 2.0 * dt)
+                        k_new = k_for_duration(x, 0.0, x_n, v_n, t_left, k_hi)
+                        if math.isfinite(k_new):
+                            self._k_start[d] = (j, k_new)
+                            self._k_cap[d] = math.inf
+                self._at_rest[d] = at_rest
             ks = self._k_start[d]
             if ks is not None:
                 if ks[0] == j:

@@ -391,12 +391,16 @@ class PhaseSpaceModel:
         sync_time: float | None = None,
         start_retime: bool | None = None,
         start_shift: bool | None = None,
+        rest_retime: bool = False,
     ) -> PSMController:
         """An online controller towards ``goal (D,)`` [unit] (default: the demonstration's goal).
 
         ``sync_gain``, ``sync_mode``, ``sync_time``, ``start_retime``, ``start_shift`` and
         ``wrong_way_accel`` override the model's defaults; ``terminal_omega`` [rad/s] is the
-        goal-holding spring's natural frequency (default ``0.2/dt``)."""
+        goal-holding spring's natural frequency (default ``0.2/dt``). ``rest_retime`` (off by
+        default, not a model parameter): a dimension brought to rest inside a segment (held,
+        stopped by a push) re-solves that segment's slope for the nominal time left, see
+        :class:`~psm.controller.PSMController`."""
         g = self._check_vector("goal", goal, self._goal)
         m = (
             np.asarray(self.parameters.wrong_way_accel)
@@ -422,6 +426,7 @@ class PhaseSpaceModel:
             sync_time=self.parameters.sync_time if sync_time is None else float(sync_time),
             start_retime=self.parameters.start_retime if start_retime is None else bool(start_retime),
             start_shift=self.parameters.start_shift if start_shift is None else bool(start_shift),
+            rest_retime=bool(rest_retime),
         )
 
     def rollout(
@@ -439,6 +444,7 @@ class PhaseSpaceModel:
         sync_time: float | None = None,
         start_retime: bool | None = None,
         start_shift: bool | None = None,
+        rest_retime: bool = False,
     ) -> Rollout:
         """Generate a motion from ``x0 (D,)`` [unit] (default: the demonstration's start) with initial
         velocity ``v0 (D,)`` [unit/s] (default 0) towards ``goal (D,)`` (default: the demonstration's).
@@ -448,7 +454,7 @@ class PhaseSpaceModel:
         (x, v)`` lets a caller push the state before each control step. Stops once the goal is held
         or after ``max_duration`` [s] (default: three times the nominal duration plus one second).
         ``sync_gain``, ``sync_mode``, ``sync_time``, ``start_retime`` and ``start_shift`` override
-        the model's defaults for this rollout (see :meth:`controller`).
+        the model's defaults for this rollout; ``rest_retime`` as in :meth:`controller`.
         """
         x = self._check_vector("x0", x0, self._start)
         v = self._check_vector("v0", v0, np.zeros(self.dim))
@@ -466,6 +472,7 @@ class PhaseSpaceModel:
             sync_time=sync_time,
             start_retime=start_retime,
             start_shift=start_shift,
+            rest_retime=rest_retime,
         )
         n_max = math.ceil(max_duration / dt) + 1
         D = self.dim

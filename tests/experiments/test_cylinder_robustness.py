@@ -67,6 +67,24 @@ def test_psm_ext_reaches_the_demonstrated_strike_speed_within_2_percent(
         assert row["landed"], row
         assert abs(row["v_at_strike_y"] / demo - 1) <= 0.02, row
     assert res.verdicts["psm_ext_strike_2pct"]["ok"], res.verdicts["psm_ext_strike_2pct"]
+    assert res.verdicts["psm_ext_lands_all"]["ok"], res.verdicts["psm_ext_lands_all"]
+
+
+def test_psm_ext_held_on_its_slow_approach_sets_off_again_and_ends_on_the_goal() -> None:
+    # Held 0.4 s at 2.0 s, z is at rest short of a via-point at rest; with the controller's
+    # rest_retime (as PSM-ext runs) the motion goes on at its nominal pace: it ends on its goal
+    # within the rollout and strikes at the demonstrated speed (without it: 357 mm away, no strike).
+    from experiments.cylinder import EXTRA_TIME, STRIKE_Y, _speed_at
+    from experiments.methods import run_method
+
+    demo = load_arm_demo("cylinder_strike")
+    fitted = fit_method("psm_ext", demo)
+    duration = float(demo.t[-1] - demo.t[0]) + EXTRA_TIME
+    r = run_method(fitted, demo.x[0], duration, disturbance=Hold(2.0, 0.4))
+    assert np.linalg.norm(r.x[-1] - demo.x[-1]) < 5e-3
+    v_demo = _speed_at(demo.t, demo.x, np.gradient(demo.x, demo.t, axis=0), STRIKE_Y)
+    v = _speed_at(r.t, r.x, r.v, STRIKE_Y)
+    assert v is not None and v_demo is not None and abs(v / v_demo - 1) <= 0.02, (v, v_demo)
 
 
 def test_dmps_time_dependence_shows_in_the_meeting_speed(cylinder: tuple[ExperimentResult, Path]) -> None:
