@@ -36,7 +36,11 @@ Files written (relative to the output directory, ``docker/``):
   at ``SCHED_FIFO`` as they do under ``psm up``: the image's ``python-rt`` (the interpreter with
   the file capability ``CAP_SYS_NICE``) in a container granted ``SYS_NICE``, with a share of the
   engine's real-time budget (``cpu_rt_runtime``; the engine needs ``dockerd --cpu-rt-runtime``
-  on kernels with real-time group scheduling, docs/deployment.md#real-time-scheduling).
+  on kernels with real-time group scheduling, docs/deployment.md#real-time-scheduling);
+- ``compose.lockstep.yaml``: override: every process on the stack's ``lockstep`` clock (the arm
+  advances a tick only once the command for the previous state is in): a deterministic run that
+  takes as long as the machine needs, never missing a deadline, as ``psm up --clock lockstep``
+  (the compose tests use it, docs/deployment.md#lockstep).
 """
 
 from __future__ import annotations
@@ -207,6 +211,11 @@ class _Builder:
         }
         return {"services": services}
 
+    def lockstep_override(self) -> dict[str, Any]:
+        """Every process on the stack's lockstep clock (the stack file's ``clock``)."""
+        env = {env_var_name("clock"): "lockstep"}
+        return {"services": {p.name: {"environment": dict(env)} for p in self.stack.processes}}
+
     def realtime(self, p: ProcessSpec) -> bool:
         """The process asks for real-time scheduling (``rt_priority`` in one of its sections)."""
         cfg = self.stack.configs.get(p.name)
@@ -314,6 +323,12 @@ def compose_files(stack: Stack) -> dict[str, str]:
         head + "# The control loop at SCHED_FIFO (the engine: dockerd --cpu-rt-runtime=<us>, "
         "docs/deployment.md):\n#   docker compose -f docker/compose.yaml "
         "-f docker/compose.realtime.yaml up\n",
+    )
+    files["compose.lockstep.yaml"] = _yaml(
+        b.lockstep_override(),
+        head + "# Every process on the lockstep clock: deterministic, as fast as the machine allows "
+        "(docs/deployment.md):\n#   docker compose -f docker/compose.yaml "
+        "-f docker/compose.lockstep.yaml up\n",
     )
     if camera:
         files["compose.camera-device.yaml"] = _yaml(

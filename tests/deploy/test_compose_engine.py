@@ -13,6 +13,7 @@ Measured times go to ``out/deploy/compose_measurements.json`` (docs/deployment.m
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import time
 from collections import Counter
@@ -119,15 +120,25 @@ def check_strangers_are_kept_off_the_arm(project: Any, port: int) -> None:
 
 
 def check_control_loop(project: Any) -> dict[str, Any]:
-    """With compose.realtime.yaml, the control loop's processes run at SCHED_FIFO (none warns
-    that it could not); returns what the planner's log shows of its predictions' timeliness."""
-    rt = [p.name for p in STACK.processes if p.name in ("arm", "obstacle_monitor", "planner")]
-    if project.engine.realtime:
-        for name in rt:
-            assert "cannot set SCHED_FIFO" not in project.logs(name), project.logs(name)[-2000:]
+    """The arm ran on the lockstep clock (compose.lockstep.yaml); returns how often the planner
+    braked for a missing collision prediction (in lockstep it waits for each one, so this
+    counts only what the monitor could not deliver)."""
+    arm = project.logs("arm")
+    assert "clock='lockstep'" in arm, arm[-2000:]
     log = project.logs("planner")
-    return {"realtime": project.engine.realtime,
-            "prediction_pauses": log.count("resumed: collision prediction available")}
+    return {"clock": "lockstep", "prediction_pauses": log.count("resumed: collision prediction available")}
+
+
+def test_the_control_loop_can_run_at_sched_fifo_in_a_container(engine: Any) -> None:
+    """compose.realtime.yaml's grants let the image's python-rt switch to SCHED_FIFO as the
+    image's user (needs an engine started with --cpu-rt-runtime on kernels with real-time group
+    scheduling; CI starts it so)."""
+    from tests.deploy.conftest import realtime_probe
+
+    why = realtime_probe(engine.env)
+    if why and os.environ.get("PSM_REQUIRE_DOCKER") != "1":
+        pytest.skip(f"this engine gives containers no real-time runtime ({why})")
+    assert not why, f"containers cannot run SCHED_FIFO ({why}): start dockerd with --cpu-rt-runtime"
 
 
 def test_the_feeding_task_runs_to_completion_under_compose(project_factory: Any, tmp_path: Path) -> None:
@@ -200,11 +211,14 @@ def test_a_camera_host_cut_off_holds_the_task_and_it_resumes(project_factory: An
     time.sleep(3.0)  # held, not moving on
     assert "completed: task feeding" not in arm_host.logs("planner")
     assert arm_host.inspect("planner")["State"]["Status"] == "running"
+    # Counted before the reconnection: the planner may resume before the last connect returns.
+    resumed_before = arm_host.logs("planner").count("resumed: goal person")
+    reconnect_at = time.monotonic()
     for c in containers:
         subprocess.run(["docker", "network", "connect", network, c], check=True, timeout=60)
     back_at, back_wall = time.monotonic(), time.time()
-    resumed_s = arm_host.wait_log("planner", "resumed: goal person", 60,
-                                  seen=arm_host.logs("planner").count("resumed: goal person"))
+    resumed_s = arm_host.wait_log("planner", "resumed: goal person", 60, seen=resumed_before)
+    resumed_s += back_at - reconnect_at  # from the first connect
     code = arm_host.wait_exit("planner", 240)
     log = arm_host.logs("planner")
     assert code == 0, log[-4000:]

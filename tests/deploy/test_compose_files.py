@@ -113,6 +113,8 @@ def test_a_stack_without_a_router_is_a_config_error() -> None:
     ["compose.yaml", "compose.camera-url.yaml"],
     ["compose.yaml", "compose.realtime.yaml"],
     ["compose.yaml", "compose.remote-camera.yaml", "compose.realtime.yaml"],
+    ["compose.yaml", "compose.lockstep.yaml"],
+    ["compose.yaml", "compose.remote-camera.yaml", "compose.lockstep.yaml"],
     ["compose.camera-host.yaml"],
 ])
 def test_docker_compose_1_29_accepts_the_files(files: list[str]) -> None:
@@ -154,3 +156,14 @@ def test_the_realtime_override_runs_the_control_loop_at_sched_fifo_within_the_en
     # The image makes python-rt: the venv's interpreter with CAP_SYS_NICE as a file capability.
     dockerfile = (DOCKER_DIR / "Dockerfile").read_text()
     assert f"setcap cap_sys_nice+ep {RT_PYTHON}" in dockerfile
+
+
+def test_the_lockstep_override_puts_every_process_on_the_lockstep_clock(tmp_path: Path) -> None:
+    """Each process of compose.lockstep.yaml loads its config with ``clock = lockstep``."""
+    from services.bus.config import load_config
+
+    services = _doc("compose.lockstep.yaml")["services"]
+    assert list(services) == [p.name for p in STACK.processes]
+    for p in STACK.processes:
+        env = {k: str(v) for k, v in services[p.name]["environment"].items()}
+        assert load_config(config_class(p.command), STACK.path, env=env).clock == "lockstep", p.name
