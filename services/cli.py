@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -72,6 +73,11 @@ def dispatch(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader of stdout went away (``psm info FILE | head``): end quietly, as a command
+        # killed by SIGPIPE would, with the rest of the output sent nowhere.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + 13
     except (PSMError, CLIError, BusError, OSError, ValueError) as exc:
         print(f"{command_path(parser, args)}: error: {_error_text(exc)}", file=sys.stderr)
         return 2
