@@ -70,7 +70,9 @@ def dispatch(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None)
         parser.print_help()
         return 2
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here (below), not at interpreter exit
+        return code
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:

@@ -364,3 +364,23 @@ def test_csv_to_stdout_and_through_a_link(tmp_path: Path, capsys: pytest.Capture
                  "--end", "0.004", "--csv", str(link)]) == 0
     assert link.is_symlink() and target.read_text() == out
     assert sorted(p.name for p in tmp_path.iterdir()) == ["link.csv", "target.csv"]
+
+
+def test_a_closed_pipe_ends_quietly() -> None:
+    """``psm info FILE | head -1``: the reader goes away; no traceback. The JSON output ends with
+    the SIGPIPE exit code (the dispatcher), the table with rich's own quiet exit (code 1)."""
+    import os
+    import subprocess
+    import sys
+
+    from .helpers import ROOT
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PSM_")}
+    env["PYTHONPATH"] = str(ROOT)
+    for args, code in ((["--json"], 141), ([], 1)):
+        proc = subprocess.Popen([sys.executable, "-m", "services.cli", "info", *args, str(DEMO)],
+                                cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        assert proc.stdout is not None and proc.stderr is not None
+        proc.stdout.close()  # before the command writes anything
+        err = proc.stderr.read().decode()
+        assert (proc.wait(timeout=60), err) == (code, ""), args
