@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Callable, Sequence
 
@@ -69,9 +70,16 @@ def dispatch(parser: argparse.ArgumentParser, argv: Sequence[str] | None = None)
         parser.print_help()
         return 2
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # a closed pipe shows here (below), not at interpreter exit
+        return code
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        # The reader of stdout went away (``psm info FILE | head``): end quietly, as a command
+        # killed by SIGPIPE would, with the rest of the output sent nowhere.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + 13
     except (PSMError, CLIError, BusError, OSError, ValueError) as exc:
         print(f"{command_path(parser, args)}: error: {_error_text(exc)}", file=sys.stderr)
         return 2

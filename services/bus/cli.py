@@ -1,5 +1,5 @@
-"""Bus sub-commands: ``psm record``, ``psm replay``, ``psm echo``, ``psm secrets``, ``psm serve
-router``.
+"""Bus sub-commands: ``psm record``, ``psm replay``, ``psm info``, ``psm export``, ``psm echo``,
+``psm secrets``, ``psm serve router``.
 
 Other modules add their own ``psm serve <target>`` with :func:`serve_targets`::
 
@@ -11,7 +11,7 @@ Other modules add their own ``psm serve <target>`` with :func:`serve_targets`::
 Errors are not handled here: they reach :func:`services.cli.dispatch`, which prints one line
 (``psm <command>: error: <message>``) and exits with code 2.
 
-Every command takes the common bus flags (``--config``, ``--prefix``, ``--mode``,
+Every command that joins the bus takes the common bus flags (``--config``, ``--prefix``, ``--mode``,
 ``--connect``, ``--listen``, ``--[no-]multicast``, ``--set PATH=VALUE``; see
 :mod:`services.bus.config`). Heavy imports (zenoh, mcap) happen inside the command functions.
 """
@@ -74,6 +74,47 @@ def _cmd_replay(args: argparse.Namespace) -> int:
                         include_commands=args.include_commands, force=args.force)
 
 
+def _cmd_info(args: argparse.Namespace) -> int:
+    from services.bus.info import run_info
+
+    return run_info(args.file, as_json=args.json)
+
+
+def _cmd_export(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from services.bus.export import export_topic, write_csv, write_npz
+    from services.cli import CLIError
+
+    src = Path(args.file)
+    outs = [(Path(o), w) for o, w in ((args.csv, write_csv), (args.npz, write_npz)) if o]
+    if not outs:
+        raise CLIError("nothing to write: give --csv OUT.csv and/or --npz OUT.npz")
+    for out, _ in outs:
+        if out.is_file() and src.exists() and out.samefile(src):
+            raise CLIError(f"{out}: is the input recording; choose another output file")
+    fields = None
+    if args.fields is not None:
+        fields = [f.strip() for f in args.fields.split(",") if f.strip()]
+        if not fields:
+            raise CLIError("--fields: expected a comma-separated list of field names")
+    table = export_topic(src, args.topic, fields=fields, start_s=args.start, end_s=args.end)
+    if table.problem:
+        print(f"psm export: warning: {src}: {table.problem}", file=sys.stderr)
+    if table.skipped:
+        print(f"psm export: warning: {table.skipped} messages on {table.topic} did not decode "
+              "and were skipped", file=sys.stderr)
+    if table.left_out:
+        left = "; ".join(f"{f} ({why})" for f, why in table.left_out.items())
+        print(f"psm export: left out: {left}", file=sys.stderr)
+    for out, write in outs:
+        write(table, out)
+        print(f"wrote {out}: {table.rows} rows x {len(table.columns)} columns "
+              f"({table.topic}, {table.schema})",
+              file=sys.stdout if out.is_file() else sys.stderr)  # not among data on stdout
+    return 0
+
+
 def _cmd_echo(args: argparse.Namespace) -> int:
     from services.bus.config import config_from_args
     from services.bus.echo import EchoConfig, run_echo
@@ -109,8 +150,8 @@ def _cmd_secrets(args: argparse.Namespace) -> int:
 
 
 def register(subparsers: Any) -> None:
-    """Add ``record``, ``replay``, ``echo``, ``secrets`` and ``serve router`` to the ``psm``
-    command line."""
+    """Add ``record``, ``replay``, ``info``, ``export``, ``echo``, ``secrets`` and ``serve
+    router`` to the ``psm`` command line."""
     from services.bus.config import add_config_arguments
 
     p = subparsers.add_parser(
@@ -151,6 +192,42 @@ def register(subparsers: Any) -> None:
                    help="with --include-commands: replay commands even to a live arm")
     add_config_arguments(p)
     p.set_defaults(func=_cmd_replay)
+
+    p = subparsers.add_parser(
+        "info", help="what an MCAP recording holds (topics, counts, rates, metadata)",
+        description="Read FILE.mcap once (checking every chunk) and print its size, duration, "
+        "start and end, message count, per channel the schema, encoding, count, mean rate and "
+        "bandwidth, its metadata records and attachments. A truncated or corrupt file is "
+        "described up to where it stops being readable, with one warning line on stderr "
+        "(exit code 0); a file that is not MCAP or has no readable message is an error "
+        "(exit code 2).",
+    )
+    p.add_argument("file", metavar="FILE.mcap")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead")
+    p.set_defaults(func=_cmd_info)
+
+    p = subparsers.add_parser(
+        "export", help="one recorded topic as CSV or NPZ columns",
+        description="Decode every message of one topic with the protobuf schema stored in "
+        "FILE.mcap and write its fields as columns: log_time_ns, publish_time_ns, t_s (s since "
+        "the recording's first message), then nested fields as dotted names (pose.position.x) "
+        "and fixed-length repeated fields as indexed ones (q.0 ... q.6). Bytes fields and "
+        "repeated fields of varying length are left out and listed on stderr.",
+    )
+    p.add_argument("file", metavar="FILE.mcap")
+    p.add_argument("--topic", required=True, metavar="KEY", help="the recorded key, e.g. "
+                   "psm/arm/state (psm info lists them)")
+    p.add_argument("--csv", metavar="OUT.csv",
+                   help="write a CSV file (header row of columns; - for stdout)")
+    p.add_argument("--npz", metavar="OUT.npz", help="write an NPZ file (one array per column)")
+    p.add_argument("--fields", metavar="A,B,...",
+                   help="only these fields (a column, or a field whose columns to take: q, "
+                   "pose.position); the time columns are always written")
+    p.add_argument("--start", type=float, metavar="SECONDS",
+                   help="only messages from this time on (s since the recording's start)")
+    p.add_argument("--end", type=float, metavar="SECONDS",
+                   help="only messages up to this time (s since the recording's start)")
+    p.set_defaults(func=_cmd_export)
 
     p = subparsers.add_parser(
         "echo", help="print and check bus messages",

@@ -16,7 +16,15 @@ from typing import Any
 
 from services.bus.config import ServiceConfig
 
-__all__ = ["TopicStats", "collect_status", "collect_topics", "run_status", "run_topics"]
+__all__ = [
+    "TopicStats",
+    "collect_status",
+    "collect_topics",
+    "human_bandwidth",
+    "run_status",
+    "run_topics",
+    "terminal_console",
+]
 
 
 def collect_status(
@@ -87,7 +95,7 @@ def rejected_cell(status: Any) -> str:
     return f"{status.rejected} ({reasons})" if reasons else str(status.rejected)
 
 
-def _console() -> Any:
+def terminal_console() -> Any:
     """A rich console; wide enough for the tables when the output is not a terminal."""
     from rich.console import Console
 
@@ -108,7 +116,7 @@ def run_status(
     prints only the missing ones."""
     from services.bus.runtime import open_session
 
-    console = _console()
+    console = terminal_console()
     session = open_session(cfg.zenoh)
     try:
         while True:
@@ -187,7 +195,9 @@ def _type_of(encoding: str) -> str:
     return encoding.removeprefix(ENCODING_PREFIX).removeprefix("application/protobuf;")
 
 
-def _human_bytes(bps: float) -> str:
+def human_bandwidth(bps: float) -> str:
+    """A bandwidth in bytes per second for people, e.g. ``512 B/s``, ``12.3 KB/s`` (1 KB =
+    1000 B)."""
     for unit in ("B/s", "KB/s", "MB/s"):
         if bps < 1000 or unit == "MB/s":
             return f"{bps:.1f} {unit}" if unit != "B/s" else f"{bps:.0f} {unit}"
@@ -205,7 +215,7 @@ def topics_table(prefix: str, stats: dict[str, TopicStats], window_s: float) -> 
     for key in sorted(stats):
         s = stats[key]
         t.add_row(key, _type_of(s.encoding), f"{s.rate_hz(window_s):.1f}",
-                  _human_bytes(s.bandwidth_bps(window_s)), str(s.count))
+                  human_bandwidth(s.bandwidth_bps(window_s)), str(s.count))
     return t
 
 
@@ -213,7 +223,7 @@ def run_topics(cfg: ServiceConfig, *, window_s: float = 2.0, watch: bool = False
     """``psm topics``: print the live keys (exit 1 when nothing was heard)."""
     from services.bus.runtime import open_session
 
-    console = _console()
+    console = terminal_console()
     session = open_session(cfg.zenoh)
     try:
         while True:

@@ -33,6 +33,7 @@ from services.bus.messages import ENCODING_PREFIX, MessageDecodeError, decode
 __all__ = [
     "LogReadError",
     "LogScan",
+    "RecordPass",
     "RecordedSample",
     "read_log",
     "read_metadata",
@@ -100,14 +101,16 @@ def _encoding_of(channel: object, schema: object | None) -> str:
     return str(getattr(channel, "message_encoding", ""))
 
 
-class _Pass:
+class RecordPass:
     """One front-to-back pass over an MCAP file that stops at the first incomplete or corrupt
     record and says why.
 
-    ``records()`` yields the schema, channel, message and metadata records in file order (the
-    records inside each chunk after checking the chunk's CRC). A file that is not MCAP at all
-    (empty, wrong magic) raises :class:`LogReadError` at once; for a truncated or corrupt one
-    the iteration ends early and :attr:`problem` says how much was readable.
+    ``records()`` yields every record in file order (``mcap.records`` objects: header, schemas,
+    channels, messages, metadata, attachments, then the summary's records; the records inside
+    each chunk after checking the chunk's CRC). A file that is not MCAP at all (empty, wrong
+    magic) raises :class:`LogReadError` at once; for a truncated or corrupt one the iteration
+    ends early and :attr:`problem` says how much was readable (:attr:`truncated`: it ran into
+    the end of the file; else :attr:`reason` says what was corrupt).
     """
 
     def __init__(self, path: Path) -> None:
@@ -116,6 +119,8 @@ class _Pass:
         self.readable_bytes = 0  # offset just past the last complete record, bytes
         self.messages = 0  # message records yielded
         self.complete = False  # footer and closing magic read
+        self.truncated = False  # stopped at the end of the file (not at a corrupt record)
+        self.reason = ""  # why a corrupt file stopped (e.g. a CRC mismatch); "" if truncated
         self.problem = ""  # one line when the pass stopped early
 
     def records(self) -> Iterator[object]:
@@ -159,10 +164,11 @@ class _Pass:
         readable = (f"{self.messages} messages readable in the first {self.readable_bytes} of "
                     f"{self.size} bytes")
         if not reason and pos >= self.size:
+            self.truncated = True
             self.problem = f"truncated recording (no footer): {readable}"
         else:
-            reason = " ".join(reason.split())[:200] or "unreadable record"
-            self.problem = (f"corrupt recording at byte {self.readable_bytes} ({reason}): "
+            self.reason = " ".join(reason.split())[:200] or "unreadable record"
+            self.problem = (f"corrupt recording at byte {self.readable_bytes} ({self.reason}): "
                             f"{readable}")
 
 
@@ -207,7 +213,7 @@ def read_samples(
 
     match = topic_matcher(topics)
     path = Path(path)
-    reader = _Pass(path)
+    reader = RecordPass(path)
     schemas: dict[int, object] = {}
     channels: dict[int, object] = {}
     encodings: dict[int, str] = {}
@@ -239,7 +245,7 @@ def scan_log(path: str | Path) -> LogScan:
     from mcap.records import Channel, Message, Schema
 
     path = Path(path)
-    reader = _Pass(path)
+    reader = RecordPass(path)
     schemas: dict[int, object] = {}
     channels: dict[int, object] = {}
     keys: dict[str, str] = {}
@@ -291,7 +297,7 @@ def read_metadata(path: str | Path) -> dict[str, dict[str, str]]:
     from mcap.records import Metadata
 
     out: dict[str, dict[str, str]] = {}
-    for record in _Pass(Path(path)).records():
+    for record in RecordPass(Path(path)).records():
         if isinstance(record, Metadata):
             out[record.name] = dict(record.metadata)
     return out
