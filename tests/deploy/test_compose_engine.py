@@ -245,8 +245,9 @@ def test_a_camera_host_cut_off_holds_the_task_and_it_resumes(project_factory: An
                 "planner reports GOAL_LOST and holds the motion toward the person; the zenoh clients "
                 "reconnect when the network is back, the goal is valid again, the planner resumes and "
                 "the task completes; the tracker's healthcheck goes healthy again",
-        "recovery": f"cut as the scoop started; the person's step held at its start {lost_s:.1f} s "
-                    f"after the cut (log polled every 0.25 s); motion resumed "
-                    f"{resumed_s:.1f} s after `docker network connect` (cut lasted {back_at - cut_at:.1f} s)",
+        "recovery": f"lockstep clock (`compose.lockstep.yaml`): cut as the scoop started; the person's "
+                    f"step held at its start {lost_s:.1f} s after the cut (log polled every 0.25 s); "
+                    f"motion resumed within {resumed_s:.1f} s of the first `docker network connect` "
+                    f"(cut lasted {back_at - cut_at:.1f} s)",
         "lost": "— (the goal is a state: the next one replaces it)",
     })
