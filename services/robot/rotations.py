@@ -32,8 +32,8 @@ def matrix_from_quat_xyzw(quat: Sequence[float] | np.ndarray) -> np.ndarray:
 
     Plain float arithmetic (no numpy on the four components: this runs every control tick in
     the arm): the quaternion is normalised twice and expanded with the same operations, in the
-    same order, as ``Rotation.from_quat(q / |q|).as_matrix()``, so the result is identical to
-    scipy's bit for bit.
+    same order, as ``Rotation.from_quat(q / |q|).as_matrix()``, so the result is scipy's to the
+    last bits (identical where scipy's compiled path does not fuse multiply-adds).
 
     Raises:
         ValueError: the quaternion has zero or non-finite norm.
