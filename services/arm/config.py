@@ -16,6 +16,8 @@ period, start pose, watchdog, ``[arm.gains]``, ``[arm.validation]``) plus the se
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 
 from services.arm.sim import ArmSimConfig
@@ -41,6 +43,15 @@ class ArmSection(ArmSimConfig):
     )
     transforms_rate_hz: float = Field(
         30.0, ge=0.0, le=1000.0, description="FrameTransforms publication rate (sim time) [Hz]; 0 = off"
+    )
+    model: Literal["visual", "collision", "off"] = Field(
+        "visual",
+        description="the URDF geometry published once, latched, on <prefix>/viz/arm for Foxglove's 3-D panel "
+        "('off' = none)",
+    )
+    model_max_bytes: int = Field(
+        1_500_000, ge=20_000, le=16_000_000,
+        description="budget of the model's mesh data [bytes]: the meshes are decimated to fit",
     )
     max_ticks: int = Field(0, ge=0, description="stop after this many ticks (0 = run until stopped)")
     stats_file: str = Field("", description="write a JSON timing/counter summary here at shutdown")

@@ -2,7 +2,10 @@
 
 Every tick the arm publishes :class:`~services.bus.messages.ArmState` on ``<prefix>/arm/state``
 and applies the latest valid :class:`~services.bus.messages.ArmCommand` from
-``<prefix>/arm/command``; link transforms go to ``<prefix>/arm/transforms`` at a lower rate.
+``<prefix>/arm/command``; link transforms go to ``<prefix>/arm/transforms`` at a lower rate. Once,
+before the first state, the arm's 3-D model (its URDF meshes as a foxglove ``SceneUpdate``, one
+entity per link frame of the transforms: :mod:`services.robot.arm_model`) goes to
+``<prefix>/viz/arm``, latched; it is built before the bus opens.
 
 Clock modes (the stack's ``clock``; ``docs/architecture.md``, *Time and the control loop*):
 
@@ -48,6 +51,7 @@ from services.arm.config import ArmConfig
 from services.arm.sim import ArmSim
 from services.bus.messages import ArmCommand, MessageDecodeError, decode
 from services.bus.runtime import Service, ServiceApp, run_service
+from services.robot.arm_model import ArmModel, arm_model_scene
 from services.robot.protocol import (
     CommandRejectedError,
     StateEncoder,
@@ -198,6 +202,9 @@ class ArmService(ServiceApp):
         # command arrives) inherit the scheduling class.
         self._rt_problem = set_realtime_priority(section.rt_priority, config.clock)
         self._tf_every = max(1, round(1e9 / (rate * self.dt_ns))) if rate > 0 else 0
+        self.model: ArmModel | None = None
+        if section.model != "off":
+            self.model = arm_model_scene(self.robot, 0, section.model, section.model_max_bytes)
 
     def setup(self, svc: Service) -> None:
         """Declare the publishers, the command subscriber and the liveliness watches."""
@@ -209,6 +216,14 @@ class ArmService(ServiceApp):
             svc.log.warning(self._rt_problem + "; running with normal scheduling")
         self._state_pub = svc.publisher(self.keys.arm_state)
         self._tf_pub = svc.publisher(self.keys.arm_transforms) if self._tf_every else None
+        self._model_pub = svc.publisher(self.keys.arm_model) if self.model is not None else None
+        if self.model is not None:
+            svc.log.info(
+                "arm model",
+                extra={"kind": self.config.arm.model, "bytes": self.model.message.ByteSize(),
+                       "triangles": self.model.triangles_out, "of": self.model.triangles_in,
+                       "cell_mm": round(self.model.cell_m * 1e3, 3), "skipped": ",".join(self.model.skipped)},
+            )
         self._cmd_key = self.keys.arm_command.key
         # On Zenoh's receive thread (no hop through a Python callback thread): it only enqueues.
         self._cmd_sub = svc.session.declare_subscriber(
@@ -390,6 +405,18 @@ class ArmService(ServiceApp):
         max_ticks = self.config.arm.max_ticks
         return self.svc.stop_event.is_set() or (0 < max_ticks <= self.sim.tick)
 
+    def _publish_model(self) -> None:
+        """Publish the arm model (latched) stamped with the arm's clock at its start: the sim
+        time of the current tick in lockstep, the wall clock in realtime (the loop sets the sim
+        time's origin to it at once)."""
+        if self.model is None or self._model_pub is None:
+            return
+        stamp = self.sim.time_ns if self._lockstep else time.time_ns()
+        sec, nsec = divmod(stamp, 1_000_000_000)
+        for e in self.model.message.entities:
+            e.timestamp.seconds, e.timestamp.nanos = sec, nsec
+        self._model_pub.put(self.model.message)
+
     # ------------------------------------------------------------------ loops
     def run_realtime(self) -> None:
         """Realtime loop: state k is published at ``t0 + k·dt`` by the wall clock, stamped
@@ -540,6 +567,7 @@ class ArmService(ServiceApp):
                 "joints": self.robot.n,
             },
         )
+        self._publish_model()
         gc.collect()
         gc.freeze()
         t0 = time.perf_counter()

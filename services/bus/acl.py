@@ -140,7 +140,7 @@ def roles(keys: Keys) -> dict[str, Role]:
             "arm", "psm arm: steps on the commands, publishes its state; brakes on a watched "
             "service's loss",
             role_services("arm"),
-            publishes=(k.arm_state, k.arm_transforms),
+            publishes=(k.arm_state, k.arm_transforms, k.arm_model),
             subscribes=(k.arm_command,),
             watches_liveliness=True,
         ),
@@ -167,7 +167,7 @@ def roles(keys: Keys) -> dict[str, Role]:
             "planner", "psm plan: the task; the only role that commands the arm",
             role_services("planner"),
             publishes=(k.arm_command, k.planner_status, k.task_events, k.gripper_command,
-                       k.planner_goal),
+                       k.planner_goal, k.viz_plan),
             subscribes=(k.arm_state, k.goals_all, k.collision),
             watches_liveliness=True,
         ),

@@ -309,6 +309,12 @@ class Keys:
             QoS(StreamClass.DATA, "DATA", False, "DROP", 0, 50.0),
         )
 
+    @property
+    def arm_model(self) -> Topic:
+        """``<prefix>/viz/arm`` — foxglove ``SceneUpdate`` of the arm's link meshes (one entity
+        per link, in that link's frame of ``arm_transforms``), once at the arm's start, latched."""
+        return Topic(self._k("viz", "arm"), SceneUpdate, QOS_LATCHED)
+
     # -- goals ---------------------------------------------------------------------------------
     def goal(self, name: str) -> Topic:
         """``<prefix>/goals/<name>`` — :class:`Goal`, latched for late joiners."""
@@ -389,6 +395,15 @@ class Keys:
         return Topic(self._k("planner", "goal"), Goal, QOS_LATCHED)
 
     @property
+    def viz_plan(self) -> Topic:
+        """``<prefix>/viz/plan`` — foxglove ``SceneUpdate`` of the task: the goal in use, the
+        task's static goals, the segment from the end effector to the goal and the end
+        effector's path so far (at the planner's status rate)."""
+        return Topic(
+            self._k("viz", "plan"), SceneUpdate, QoS(StreamClass.DATA, "DATA_LOW", False, "DROP", 0, 20.0)
+        )
+
+    @property
     def task_events(self) -> Topic:
         """``<prefix>/task/events`` — :class:`TaskEvent` on every sequencer transition."""
         return Topic(self._k("task", "events"), TaskEvent, QOS_DATA)
@@ -429,7 +444,8 @@ class Keys:
     def latched_selectors(self) -> list[Topic]:
         """Selectors covering every latched stream (one QoS class each), for subscribers that
         want late-joiner history for everything (the recorder)."""
-        return [self.goals_all, self.viz_goals_all, self.obstacles, self.scene, self.planner_goal]
+        return [self.goals_all, self.viz_goals_all, self.obstacles, self.scene, self.planner_goal,
+                self.arm_model]
 
     @property
     def all(self) -> Topic:
@@ -461,6 +477,7 @@ class Keys:
         yield self.arm_state
         yield self.arm_command
         yield self.arm_transforms
+        yield self.arm_model
         yield self.goal(example_name)
         yield self.goal_pose(example_name)
         yield self.vision_faces
@@ -471,6 +488,7 @@ class Keys:
         yield self.collision
         yield self.planner_status
         yield self.planner_goal
+        yield self.viz_plan
         yield self.task_events
         yield self.gripper_command
         yield self.status(example_name)
@@ -481,6 +499,7 @@ _KEY_PATTERNS: list[tuple[re.Pattern[str], Any]] = [
     (re.compile("arm/state"), lambda k: k.arm_state),
     (re.compile("arm/command"), lambda k: k.arm_command),
     (re.compile("arm/transforms"), lambda k: k.arm_transforms),
+    (re.compile("viz/arm"), lambda k: k.arm_model),
     (re.compile("goals/" + _NAME), lambda k, n: k.goal(n)),
     (re.compile("viz/goals/" + _NAME), lambda k, n: k.goal_pose(n)),
     (re.compile("vision/faces"), lambda k: k.vision_faces),
@@ -491,6 +510,7 @@ _KEY_PATTERNS: list[tuple[re.Pattern[str], Any]] = [
     (re.compile("collision"), lambda k: k.collision),
     (re.compile("planner/status"), lambda k: k.planner_status),
     (re.compile("planner/goal"), lambda k: k.planner_goal),
+    (re.compile("viz/plan"), lambda k: k.viz_plan),
     (re.compile("task/events"), lambda k: k.task_events),
     (re.compile("gripper/command"), lambda k: k.gripper_command),
     (re.compile("status/" + _NAME), lambda k, n: k.status(n)),

@@ -31,6 +31,14 @@ class PlannerSection(Section):
     demos_dir: str = Field("", description="directory of the step demonstrations ('' = data/demos)")
     cache_dir: str = Field("out/models", description="learned models are cached here ('' = no cache)")
     status_rate_hz: float = Field(20.0, ge=1.0, le=100.0, description="PlannerStatus rate [Hz]")
+    viz_path_points: int = Field(
+        400, ge=2, le=10_000,
+        description="most points of the end-effector path on <prefix>/viz/plan (halved when full)",
+    )
+    viz_path_step_m: float = Field(
+        0.002, ge=0.0, le=0.1,
+        description="the viz path gets a point once the end effector moved this far [m]",
+    )
     exit_when_done: bool = Field(
         False, description="exit once the task is done (code 0) or aborted (code 1), after linger_s"
     )

@@ -17,7 +17,11 @@ Published besides the commands:
   aborted; the completions carry their figures as JSON);
 * ``<prefix>/gripper/command`` — :class:`GripperCommand` where the task asks for one;
 * ``<prefix>/planner/goal`` — :class:`Goal`: the goal the active step heads to (offset
-  included), on every change, latched: the obstacle monitor tests the segment to it.
+  included), on every change, latched: the obstacle monitor tests the segment to it;
+* ``<prefix>/viz/plan`` — a foxglove ``SceneUpdate`` with the status (once the first state is
+  answered): the goal in use, the task's static goals, the segment from the end effector to the
+  goal and the end effector's path so far (:class:`~services.planner.viz.PlanScene`, one message
+  changed in place, built outside the lock).
 
 Obstacles (``collision_check = "required"``): the monitor's :class:`CollisionPrediction` on
 ``<prefix>/collision`` is applied to the running step (eq. 15 stops, protective stop; see
@@ -79,6 +83,7 @@ from services.planner.config import PlannerConfig
 from services.planner.models import DEMOS_DIR, ModelCache, load_task_models
 from services.planner.progress import ProgressError, TaskProgress, read_progress, write_progress
 from services.planner.sequencer import CollisionInfo, CollisionPolicy, TaskRunner
+from services.planner.viz import PlanScene
 from services.robot.protocol import StateStream
 from services.threads import limit_blas_threads
 
@@ -179,6 +184,9 @@ class PlannerService(ServiceApp):
                 self._progress_problem = str(exc)
         self._dt_ns = 0
         self._wake = threading.Event()  # a transition to publish (and to write to the progress file)
+        self.plan_scene = PlanScene(
+            scene.frame_id, self.runner.goals.static, sec.viz_path_points, sec.viz_path_step_m
+        )
 
     # ------------------------------------------------------------------ setup
     def setup(self, svc: Service) -> None:
@@ -196,6 +204,7 @@ class PlannerService(ServiceApp):
         self._gripper_pub = svc.publisher(keys.gripper_command)
         # Before the state subscriber: the first answer may publish the goal at once.
         self._goal_pub = svc.publisher(keys.planner_goal)
+        self._viz_pub = svc.publisher(keys.viz_plan)
         self._state_key = keys.arm_state.key
         sub = svc.session.declare_subscriber(
             self._state_key, zenoh.handlers.Callback(self._on_state, indirect=False)
@@ -604,7 +613,14 @@ class PlannerService(ServiceApp):
                 msg.latency_p50_us = float(lat[n // 2])
                 msg.latency_p99_us = float(lat[min(n - 1, int(0.99 * n))])
                 msg.latency_max_us = float(lat[-1])
+            # The scene's inputs (copied: the control path reuses these arrays).
+            answered = self._last_tick >= 0
+            ee = (float(self._x[0]), float(self._x[1]), float(self._x[2]))
+            goal = None if r.goal is None else (float(r.goal[0]), float(r.goal[1]), float(r.goal[2]))
+            goal_name = msg.goal_name
         self._status_pub.put(msg)
+        if answered:
+            self._viz_pub.put(self.plan_scene.update(msg.stamp_ns, ee, goal, goal_name))
 
     # ------------------------------------------------------------------ end
     def summary(self) -> dict[str, Any]:

@@ -193,11 +193,23 @@ class RobotModel:
         self._zero_ddq = np.zeros(self.model.nv)  # the zero joint acceleration of update()
 
     def collision_geometry(self, package_dirs: Sequence[str | Path] | None = None) -> pin.GeometryModel:
-        """The URDF's collision geometry, reduced like :attr:`model` (the locked joints' bodies are
-        attached to their parents at the locked value), so ``parentJoint``/``parentFrame`` index
-        :attr:`model`.
+        """The URDF's collision geometry, reduced like :attr:`model` (see :meth:`geometry`)."""
+        return self.geometry(pin.GeometryType.COLLISION, package_dirs)
+
+    def visual_geometry(self, package_dirs: Sequence[str | Path] | None = None) -> pin.GeometryModel:
+        """The URDF's visual geometry, reduced like :attr:`model` (see :meth:`geometry`)."""
+        return self.geometry(pin.GeometryType.VISUAL, package_dirs)
+
+    def geometry(
+        self, kind: pin.GeometryType, package_dirs: Sequence[str | Path] | None = None
+    ) -> pin.GeometryModel:
+        """The URDF's collision or visual geometry, reduced like :attr:`model` (the locked joints'
+        bodies are attached to their parents at the locked value), so ``parentJoint``/
+        ``parentFrame`` index :attr:`model`; each object's ``placement`` is relative to its parent
+        joint, its mesh vertices (m) are in its own frame, scaled by ``meshScale``.
 
         Args:
+            kind: ``pin.GeometryType.COLLISION`` or ``pin.GeometryType.VISUAL``.
             package_dirs: directories that resolve ``package://`` mesh paths; default: the
                 ``share`` directory of ``example-robot-data`` for its URDFs, else the URDF's
                 directory and its two parents.
@@ -206,13 +218,13 @@ class RobotModel:
             ValueError: the model was not built by :meth:`load` (no full model kept).
         """
         if self.full_model is None:
-            raise ValueError("collision geometry needs the full model kept by RobotModel.load")
+            raise ValueError("the robot's geometry needs the full model kept by RobotModel.load")
         path = Path(self.urdf_path)
         if package_dirs is None:
             package_dirs = [path.parents[i] for i in range(min(_PANDA_SHARE_UP, len(path.parents)))]
         dirs = [str(d) for d in package_dirs]
         full = self.full_model
-        geom = pin.buildGeomFromUrdf(full, str(path), pin.GeometryType.COLLISION, package_dirs=dirs)
+        geom = pin.buildGeomFromUrdf(full, str(path), kind, package_dirs=dirs)
         if self.locked_joint_ids:
             _, geom = pin.buildReducedModel(full, geom, list(self.locked_joint_ids), pin.neutral(full))
         return geom

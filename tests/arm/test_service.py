@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.bus.messages import ArmState, Keys, ServiceStatus
+from services.bus.messages import ArmState, FrameTransforms, Keys, SceneUpdate, ServiceStatus
 from services.robot.model import RobotModel
 
 from .conftest import ROOT, Bus, stop, wait_until
@@ -213,7 +213,7 @@ def test_lockstep_runs_are_byte_identical(bus: Bus, tmp_path: Path) -> None:
         _lockstep_recording(bus, out, ticks)
         by_topic: dict[str, list[bytes]] = {}
         for s in read_samples(out, strict=True):
-            if s.topic.startswith("psm/arm/"):
+            if s.topic.startswith("psm/arm/") or s.topic == KEYS.arm_model.key:
                 by_topic.setdefault(s.topic, []).append(s.payload)
         runs.append(by_topic)
     a, b = runs
@@ -222,6 +222,14 @@ def test_lockstep_runs_are_byte_identical(bus: Bus, tmp_path: Path) -> None:
     assert len(a[KEYS.arm_transforms.key]) == ticks // 10 + 1
     for key in (KEYS.arm_state.key, KEYS.arm_command.key, KEYS.arm_transforms.key):
         assert a[key] == b[key], key
+    # The arm's 3-D model: once, latched, stamped with sim time 0, the same in both runs; its
+    # links are the transforms' child frames.
+    assert len(a[KEYS.arm_model.key]) == 1 and a[KEYS.arm_model.key] == b[KEYS.arm_model.key]
+    model = SceneUpdate.FromString(a[KEYS.arm_model.key][0])
+    tf = FrameTransforms.FromString(a[KEYS.arm_transforms.key][0])
+    children = {t.child_frame_id for t in tf.transforms}
+    assert len(model.entities) == 11 and {e.frame_id for e in model.entities} <= children
+    assert all(e.timestamp.seconds == e.timestamp.nanos == 0 and e.models for e in model.entities)
     # The arm really moved (the comparison is not between two idle arms).
     y = [ArmState.FromString(p).ee_position.y for p in a[KEYS.arm_state.key]]
     assert max(y) - min(y) > 0.1

@@ -38,8 +38,9 @@ MEASUREMENTS = ROOT / "out" / "deploy" / "compose_measurements.json"
 def expected_topics() -> set[str]:
     """Every key the feeding stack publishes during a run."""
     k = Keys(STACK.config.prefix)
-    keys = {t.key for t in (k.arm_state, k.arm_command, k.arm_transforms, k.collision, k.obstacles,
-                            k.scene, k.planner_goal, k.planner_status, k.task_events,
+    keys = {t.key for t in (k.arm_state, k.arm_command, k.arm_transforms, k.arm_model, k.collision,
+                            k.obstacles, k.scene, k.planner_goal, k.planner_status, k.viz_plan,
+                            k.task_events,
                             k.gripper_command, k.vision_faces, k.goal("person"),
                             k.camera_image("cam0"))}
     keys |= {k.status(p.service_name).key for p in STACK.processes}
