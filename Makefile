@@ -6,7 +6,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-dev
 
-.PHONY: demo test lint bench venv clean
+.PHONY: demo test lint bench results venv clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -35,6 +35,11 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.obstacles
 	$(PY) -m benchmarks.monitor
 	$(PY) -m benchmarks.acl
+
+# The paper's experiments, their report (out/experiments/) and the README's results block.
+results: $(STAMP)
+	$(VENV)/bin/psm experiments --all --seed 1
+	$(PY) scripts/readme_results.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache
