@@ -35,6 +35,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.obstacles
 	$(PY) -m benchmarks.monitor
 	$(PY) -m benchmarks.acl
+	$(PY) -m benchmarks.viewer
 
 clean:
 	rm -rf $(VENV) out .pytest_cache .ruff_cache
