@@ -35,6 +35,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.obstacles
 	$(PY) -m benchmarks.monitor
 	$(PY) -m benchmarks.acl
+	$(PY) -m benchmarks.viewer
 
 # The paper's experiments, their report (out/experiments/) and the README's results block.
 results: $(STAMP)

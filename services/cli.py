@@ -25,6 +25,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "services.goal_tracker.cli",
     "services.planner.cli",
     "services.obstacle_monitor.cli",
+    "services.viewer.cli",
     "services.compose",
     "experiments.cli",
 )

@@ -48,6 +48,7 @@ from services.bus.config import (
     load_config,
     read_toml,
 )
+from services.viewer.config import ViewerSection
 
 __all__ = [
     "COMMANDS",
@@ -93,6 +94,7 @@ COMMANDS: dict[tuple[str, ...], Command] = {
     ("record",): Command("services.bus.recorder:RecorderConfig", "recorder"),
     ("replay",): Command("services.bus.replayer:ReplayerConfig", "replayer"),
     ("echo",): Command("services.bus.echo:EchoConfig", "echo"),
+    ("view",): Command("services.viewer.config:ViewerConfig", "viewer"),
 }
 
 
@@ -213,9 +215,19 @@ class StackSection(Section):
 
 
 class StackConfig(ServiceConfig):
-    """The supervisor's view of a stack file: the shared settings + ``[stack]``."""
+    """The supervisor's view of a stack file: the shared settings + ``[stack]``, and the
+    ``[viewer]`` table (validated with the file: ``psm up --view`` adds the viewer process)."""
 
     stack: StackSection
+    viewer: ViewerSection = Field(default_factory=ViewerSection)
+
+
+def viewer_process(stack: StackConfig) -> ProcessSpec:
+    """The process ``psm up --view`` adds: ``psm view``, not required (the stack goes on without
+    it), never restarted, after the router."""
+    routers = [p.name for p in stack.stack.processes if p.enabled and p.is_router]
+    return ProcessSpec(name="viewer", command=["view"], needs=routers[:1], required=False,
+                       cpus=0.5, memory_mb=256)
 
 
 @dataclass
@@ -239,12 +251,17 @@ def load_stack(
     *,
     overrides: Mapping[str, Any] | None = None,
     env: Mapping[str, str] | None = None,
+    view: bool = False,
 ) -> Stack:
     """Load and validate a stack file (raises :class:`ConfigError` naming the process and the
-    field). ``overrides`` (dotted path -> value) apply to every process that has the field."""
+    field). ``overrides`` (dotted path -> value) apply to every process that has the field.
+    ``view``: add the live viewer (:func:`viewer_process`) right after the router, so it sees
+    the stack from its first message."""
     path = Path(path)
     overrides = dict(overrides or {})
     config = load_config(StackConfig, path, overrides=_overrides_for(StackConfig, overrides), env=env)
+    if view:
+        _add_viewer(config)
     unknown_override = [
         k for k in overrides
         if not any(k.split(".", 1)[0] in cls.model_fields
@@ -277,6 +294,25 @@ def load_stack(
                     "links to other peers directly, past the router's access control",
                 )
     return Stack(path, config, processes, configs)
+
+
+def _add_viewer(config: StackConfig) -> None:
+    """Insert :func:`viewer_process` after the stack's router (first if it has none)."""
+    from pydantic import ValidationError
+
+    from services.bus.config import config_error
+
+    procs = list(config.stack.processes)
+    if any(p.name == "viewer" or p.command[:1] == ["view"] for p in procs):
+        raise ConfigError("stack.processes", "--view adds a process 'viewer' running 'psm view'; "
+                          "the stack file already has one")
+    at = next((i + 1 for i, p in enumerate(procs) if p.enabled and p.is_router), 0)
+    procs.insert(at, viewer_process(config))
+    try:
+        config.stack = StackSection(**{**dict(config.stack), "processes": procs})
+    except ValidationError as exc:
+        err = config_error(exc)
+        raise ConfigError(f"stack.{err.path}", err.reason) from None
 
 
 def use_camera(stack: Stack) -> Stack:

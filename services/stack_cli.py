@@ -28,7 +28,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
             overrides["goal_tracker.camera.source"] = "url"
             overrides["goal_tracker.camera.uri"] = json.dumps(args.camera)
     parsed = {k: parse_override(v) for k, v in overrides.items()}
-    stack = load_stack(args.stack or DEFAULT_STACK, overrides=parsed)
+    stack = load_stack(args.stack or DEFAULT_STACK, overrides=parsed, view=args.view)
     if args.camera is not None:
         use_camera(stack)
     if args.record and not any(p.command[:1] == ["record"] for p in stack.processes):
@@ -39,6 +39,10 @@ def _cmd_up(args: argparse.Namespace) -> int:
     if args.check:
         print(f"{stack.path}: valid; processes: {', '.join(p.name for p in stack.processes)}")
         return 0
+    if args.view:
+        v = stack.config.viewer
+        print(f"live view: open ws://{v.host}:{v.port} in Foxglove (Open connection > Foxglove WebSocket)",
+              flush=True)
     return run_stack(stack, duration_s=args.duration, env_overrides=env, live=args.live)
 
 
@@ -79,6 +83,9 @@ def register(subparsers: Any) -> None:
     p.add_argument("--camera", metavar="DEVICE|URL",
                    help="a real camera for the goal tracker: a device index (0) or a stream URL "
                    "(rtsp://...), instead of the synthetic camera")
+    p.add_argument("--view", action="store_true",
+                   help="also run the live viewer (psm view): the stack in Foxglove at "
+                   "ws://HOST:PORT of [viewer] (default ws://127.0.0.1:8765)")
     p.set_defaults(func=_cmd_up)
 
     s = subparsers.add_parser(

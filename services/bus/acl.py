@@ -4,9 +4,9 @@ One table, :func:`roles`, says what each process of the stack does on the bus, i
 catalogue's topics (:class:`~services.bus.messages.Keys`): which topics it publishes, which it
 subscribes to, whether it watches or lists liveliness tokens, and under which service names it
 declares its own liveliness token and ``ServiceStatus``. The role names are the stack's process
-names (``configs/stack.toml``) plus ``operator``, the command-line tools a person runs against a
-live stack (``psm status``, ``psm topics``, ``psm echo``, ``psm obstacle ...``, the supervisor's
-own session, a docker healthcheck).
+names (``configs/stack.toml``), ``viewer`` (``psm up --view`` adds it) plus ``operator``, the
+command-line tools a person runs against a live stack (``psm status``, ``psm topics``,
+``psm echo``, ``psm obstacle ...``, the supervisor's own session, a docker healthcheck).
 
 :func:`acl_config` turns the table into zenoh's ``access_control`` configuration for the
 router, default deny: each role is a subject (its user name for user/password authentication,
@@ -78,7 +78,8 @@ ACL_MESSAGES = (
 )
 
 #: The roles, in the stack's start order; ``operator`` is a person's command-line tools.
-ROLE_NAMES = ("recorder", "arm", "camera", "goal_tracker", "obstacle_monitor", "planner", "operator")
+ROLE_NAMES = ("recorder", "arm", "camera", "goal_tracker", "obstacle_monitor", "planner", "viewer",
+              "operator")
 
 #: The ``psm`` command(s) each role runs: their liveliness / status names come from the stack's
 #: command registry (:data:`services.stack.COMMANDS`), e.g. the camera's ``camera_synth``.
@@ -89,6 +90,7 @@ _ROLE_COMMANDS: dict[str, tuple[tuple[str, ...], ...]] = {
     "goal_tracker": (("track",),),
     "obstacle_monitor": (("obstacles",),),
     "planner": (("plan",),),
+    "viewer": (("view",),),
     "operator": (("echo",),),
 }
 
@@ -170,6 +172,12 @@ def roles(keys: Keys) -> dict[str, Role]:
                        k.planner_goal, k.viz_plan),
             subscribes=(k.arm_state, k.goals_all, k.collision),
             watches_liveliness=True,
+        ),
+        Role(
+            "viewer", "psm view (psm up --view): the cell to Foxglove, latched history "
+            "included; reads only",
+            role_services("viewer"),
+            subscribes=(k.all, *k.latched_selectors()),
         ),
         Role(
             "operator", "a person's tools: psm status / topics / echo, psm obstacle, the "

@@ -438,7 +438,10 @@ def test_the_stack_checks_roles_and_client_mode(tmp_path: Path) -> None:
     from services.stack import DEFAULT_STACK, load_stack
 
     stack = load_stack(DEFAULT_STACK, overrides={"stack.access_control": True}, env={})
-    assert [p.name for p in stack.processes if not p.is_router] == list(ROLE_NAMES[:-1])
+    assert [p.name for p in stack.processes if not p.is_router] == [
+        r for r in ROLE_NAMES if r not in ("viewer", "operator")]
+    viewed = load_stack(DEFAULT_STACK, overrides={"stack.access_control": True}, env={}, view=True)
+    assert sorted(p.name for p in viewed.processes if not p.is_router) == sorted(ROLE_NAMES[:-1])
     text = DEFAULT_STACK.read_text().replace('name = "camera"', 'name = "webcam"')
     (tmp_path / "stack.toml").write_text(text)
     with pytest.raises(ConfigError, match="'webcam' is no access-control role"):
@@ -490,3 +493,29 @@ def test_the_log_filter_reports_attempts_not_zenohs_cache(capsys: pytest.Capture
     assert acl.denied == {("goal_tracker", "put", "ingress", "psm/arm/command"): 3}
     acl.feed(f"{_T}{_SUBJ} is unauthorized to Declare Subscriber (egress) on psm/x".encode())
     assert records[-1].__dict__["action"] == "declare_subscriber" and len(records) == 2
+
+
+def test_the_viewer_reads_the_cell_under_access_control(
+    acl_bus: AclBus, procs: Callable[..., Proc]
+) -> None:
+    """``psm view`` logs in as the read-only ``viewer`` role: it gets a goal published before it
+    started (the publisher's cache) and the live status, and the router denies nothing."""
+    from services.bus.runtime import Service
+
+    from .test_viewer import watch
+
+    tracker = Service("goal_tracker", client_config(
+        acl_bus.endpoint, **acl_bus.overrides("goal_tracker"))).start()
+    try:
+        tracker.publisher(KEYS.goal("person")).put(Goal(stamp_ns=5, seq=7, name="person"))
+        port = free_port()
+        viewer = procs(["-m", "services.cli", "view", "--port", str(port), *acl_bus.cli()], "viewer",
+                       env=acl_bus.env("viewer"))
+        assert wait_for(lambda: port_open(port) or not viewer.alive(), 30.0) and viewer.alive(), \
+            viewer.stderr()
+        seen = watch(port, 20.0, until=lambda r: {"psm/goals/person", "psm/status/viewer"} <= set(r.messages))
+        assert [Goal.FromString(p).seq for _, _, p in seen.messages["psm/goals/person"]] == [7]
+        assert "psm/status/viewer" in seen.messages, (seen.channels, viewer.stderr())
+        assert "access denied" not in acl_bus.log(), acl_bus.log()
+    finally:
+        tracker.close()
