@@ -186,7 +186,7 @@ def bench_latency(n_blocks: int, per_block: int, warmup: int) -> dict[str, Any]:
         svc.subscribe(ik.arm_command, lambda _c, _k: in_event.set(), delivery="inline")
         deadline = time.monotonic() + 10
         while time.monotonic() < deadline and not (
-                raw_pub.matching_status and state_pub.has_subscribers
+                raw_pub.matching_status.matching and state_pub.has_subscribers
                 and in_pub.has_subscribers):
             time.sleep(0.01)
         time.sleep(0.3)
@@ -303,7 +303,7 @@ def _publisher(endpoint: str, kind: str, rate: float, seconds: float) -> None:
             congestion_control=zenoh.CongestionControl.BLOCK)
 
         class _Pub:
-            has_subscribers = property(lambda self: raw_pub.matching_status)
+            has_subscribers = property(lambda self: raw_pub.matching_status.matching)
 
             def put_bytes(self, b: bytes) -> None:
                 raw_pub.put(b)

@@ -39,7 +39,7 @@ from services.bus.config import ConfigError, Section, ServiceConfig, StrList
 from services.bus.errors import BusError
 from services.bus.log import LogReadError, read_samples, scan_log, topic_matcher
 from services.bus.messages import validate_key_expr
-from services.bus.runtime import Service, ServiceApp, run_service
+from services.bus.runtime import Service, ServiceApp, publisher_matching, run_service
 
 __all__ = ["ReplayRefusedError", "ReplayerConfig", "ReplayerSection", "remap_key", "run_replayer"]
 
@@ -294,9 +294,9 @@ def _replay(
     if rp.wait_subscribers_s > 0 and pubs:
         deadline = time.monotonic() + rp.wait_subscribers_s
         while time.monotonic() < deadline and not svc.stop_event.is_set():
-            if all(getattr(p, "matching_status", False) for p in pubs.values()):
+            if all(publisher_matching(p) for p in pubs.values()):
                 break
-            if any(getattr(p, "matching_status", False) for p in pubs.values()):
+            if any(publisher_matching(p) for p in pubs.values()):
                 # A subscriber is there; the routes of the other keys through a router complete
                 # a little after the first match: let them settle (bounded by the wait).
                 svc.stop_event.wait(min(SETTLE_S, max(0.0, deadline - time.monotonic())))

@@ -81,6 +81,7 @@ __all__ = [
     "init_zenoh_log",
     "open_session",
     "project_version",
+    "publisher_matching",
     "run_service",
     "setup_logging",
     "zenoh_config",
@@ -260,6 +261,14 @@ def init_zenoh_log(directives: Sequence[str] = ()) -> None:
             os.environ["RUST_LOG"] = old
 
 
+def publisher_matching(pub: Any) -> bool | None:
+    """Whether a zenoh publisher has a matching subscriber (``None``: unknown, e.g. an
+    advanced publisher, which does not report it). zenoh's ``MatchingStatus`` object is always
+    truthy: its ``matching`` attribute is the answer."""
+    status = getattr(pub, "matching_status", None)
+    return None if status is None else bool(status.matching)
+
+
 def open_session(cfg: ZenohConfig, extra: Mapping[str, Any] | None = None) -> Any:
     """Open a ``zenoh.Session`` from config (``extra``: see :func:`zenoh_config`). Zenoh's own
     (Rust) log level follows ``RUST_LOG``, default ``error`` (:func:`init_zenoh_log`).
@@ -385,8 +394,7 @@ class TypedPublisher:
         publishers, which zenoh does not report). It can turn true a little before the route
         through a router is complete: lockstep starters should confirm with a round trip or
         wait a few hundred ms before the first sample that must not be lost."""
-        status = getattr(self._pub, "matching_status", None)
-        return None if status is None else bool(status)
+        return publisher_matching(self._pub)
 
     def put_bytes(self, payload: bytes) -> None:
         """Publish an already serialised message of the topic's type. Once the publisher is
