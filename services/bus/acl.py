@@ -155,7 +155,8 @@ def roles(keys: Keys) -> dict[str, Role]:
         Role(
             "goal_tracker", "psm track: frames (a topic, or its own camera) to the person's goal",
             role_services("goal_tracker"),
-            publishes=(k.vision_faces, k.goals_all, k.viz_goals_all, k.camera_images_all),
+            publishes=(k.vision_faces, k.goals_all, k.viz_goals_all, k.camera_images_all,
+                       k.camera_annotations_all),
             subscribes=(k.camera_images_all, k.arm_state),
         ),
         Role(

@@ -39,6 +39,7 @@ from typing import Any
 
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf.descriptor import FileDescriptor
@@ -76,6 +77,7 @@ __all__ = [
     "FrameTransforms",
     "Goal",
     "GripperCommand",
+    "ImageAnnotations",
     "InvalidKeyError",
     "Keys",
     "MessageDecodeError",
@@ -124,6 +126,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         GripperCommand,
         ServiceStatus,
         CompressedImage,
+        ImageAnnotations,
         FrameTransforms,
         SceneUpdate,
         PoseInFrame,
@@ -132,12 +135,14 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
 
 # Where each type keeps its own stamp (see :func:`stamp_ns_of`): field 1 ``int64 stamp_ns`` (the
 # project's convention), field 1 ``google.protobuf.Timestamp timestamp`` (Foxglove's
-# CompressedImage, PoseInFrame), the timestamp of the first element of a repeated field 1
-# (FrameTransforms.transforms) or of SceneUpdate's entities (field 2), else its deletions (1).
+# CompressedImage, PoseInFrame), field 5 ``timestamp`` (ImageAnnotations), the timestamp of the
+# first element of a repeated field 1 (FrameTransforms.transforms) or of SceneUpdate's entities
+# (field 2), else its deletions (1).
 _INT64_STAMP_TYPES = frozenset(
     name for name, cls in MESSAGE_TYPES.items() if name.startswith("psm.")
 )
 _TIMESTAMP_TYPES = frozenset({"foxglove.CompressedImage", "foxglove.PoseInFrame"})
+_TIMESTAMP5_TYPES = frozenset({"foxglove.ImageAnnotations"})
 _FIRST_ITEM_TIMESTAMP_TYPES = frozenset({"foxglove.FrameTransforms"})
 _SCENE_TYPES = frozenset({"foxglove.SceneUpdate"})
 
@@ -351,6 +356,22 @@ class Keys:
             QOS_CAMERA,
         )
 
+    def camera_annotations(self, cam_id: str) -> Topic:
+        """``<prefix>/camera/<cam_id>/annotations`` — foxglove ``ImageAnnotations``: the face
+        boxes of each analysed frame, stamped with the frame's stamp, drawn on the camera's
+        images by Foxglove's Image panel."""
+        return Topic(
+            self._k("camera", _check_name("camera id", cam_id), "annotations"),
+            ImageAnnotations,
+            QoS(StreamClass.DATA, "DATA", False, "DROP", 0, 30.0),
+        )
+
+    @property
+    def camera_annotations_all(self) -> Topic:
+        """``<prefix>/camera/*/annotations`` — selector matching every camera's annotations."""
+        return Topic(self._k("camera", "*", "annotations"), ImageAnnotations,
+                     QoS(StreamClass.DATA, "DATA", False, "DROP", 0, 30.0))
+
     @property
     def camera_images_all(self) -> Topic:
         """``<prefix>/camera/*/image`` — selector matching every camera's images."""
@@ -482,6 +503,7 @@ class Keys:
         yield self.goal_pose(example_name)
         yield self.vision_faces
         yield self.camera_image(example_name)
+        yield self.camera_annotations(example_name)
         yield self.obstacles
         yield self.obstacles_command
         yield self.scene
@@ -504,6 +526,7 @@ _KEY_PATTERNS: list[tuple[re.Pattern[str], Any]] = [
     (re.compile("viz/goals/" + _NAME), lambda k, n: k.goal_pose(n)),
     (re.compile("vision/faces"), lambda k: k.vision_faces),
     (re.compile("camera/" + _NAME + "/image"), lambda k, n: k.camera_image(n)),
+    (re.compile("camera/" + _NAME + "/annotations"), lambda k, n: k.camera_annotations(n)),
     (re.compile("obstacles"), lambda k: k.obstacles),
     (re.compile("obstacles/command"), lambda k: k.obstacles_command),
     (re.compile("viz/scene"), lambda k: k.scene),
@@ -580,11 +603,11 @@ def decode(
     return msg
 
 
-def _stamp_readers() -> tuple[type[Message], type[Message], type[Message], type[Message]]:
+def _stamp_readers() -> tuple[type[Message], ...]:
     """Tiny message types that read only where a payload keeps its stamp (everything else is
     kept as unknown fields): ``int64 stamp_ns = 1``; ``Ts timestamp = 1`` (seconds, nanos);
-    ``repeated StampTs items = 1``; SceneUpdate's ``repeated StampTs deletions = 1`` and
-    ``repeated StampTs entities = 2``."""
+    ``Ts timestamp = 5`` (ImageAnnotations); ``repeated StampTs items = 1``; SceneUpdate's
+    ``repeated StampTs deletions = 1`` and ``repeated StampTs entities = 2``."""
     from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
     f = descriptor_pb2.FieldDescriptorProto
@@ -596,6 +619,9 @@ def _stamp_readers() -> tuple[type[Message], type[Message], type[Message], type[
     ts = fdp.message_type.add(name="Ts")
     ts.field.add(name="seconds", number=1, type=f.TYPE_INT64, label=f.LABEL_OPTIONAL)
     ts.field.add(name="nanos", number=2, type=f.TYPE_INT32, label=f.LABEL_OPTIONAL)
+    m = fdp.message_type.add(name="StampTs5")
+    m.field.add(name="timestamp", number=5, type=f.TYPE_MESSAGE, label=f.LABEL_OPTIONAL,
+                type_name=".psm_internal.Ts")
     m = fdp.message_type.add(name="StampTs")
     m.field.add(name="timestamp", number=1, type=f.TYPE_MESSAGE, label=f.LABEL_OPTIONAL,
                 type_name=".psm_internal.Ts")
@@ -613,10 +639,10 @@ def _stamp_readers() -> tuple[type[Message], type[Message], type[Message], type[
     def get(name: str) -> type[Message]:
         return message_factory.GetMessageClass(pool.FindMessageTypeByName(f"psm_internal.{name}"))
 
-    return get("StampNs"), get("StampTs"), get("FirstItem"), get("Scene")
+    return get("StampNs"), get("StampTs"), get("StampTs5"), get("FirstItem"), get("Scene")
 
 
-_STAMP_NS, _STAMP_TS, _FIRST_ITEM, _SCENE = _stamp_readers()
+_STAMP_NS, _STAMP_TS, _STAMP_TS5, _FIRST_ITEM, _SCENE = _stamp_readers()
 _MAX_STAMP_NS = (1 << 64) - 1  # MCAP times are uint64 ns
 
 
@@ -632,7 +658,8 @@ def stamp_ns_of(payload: bytes, encoding: str) -> int | None:
     enough for the recorder's hot path).
 
     * project messages (``psm.*``): ``int64 stamp_ns = 1``; 0 is a valid stamp (sim time 0);
-    * Foxglove ``CompressedImage``, ``PoseInFrame``: ``timestamp`` (0 valid when present);
+    * Foxglove ``CompressedImage``, ``PoseInFrame``, ``ImageAnnotations``: ``timestamp`` (0
+      valid when present);
     * Foxglove ``FrameTransforms``: the ``timestamp`` of its first transform;
     * Foxglove ``SceneUpdate``: the ``timestamp`` of its first entity, else first deletion.
 
@@ -647,6 +674,8 @@ def stamp_ns_of(payload: bytes, encoding: str) -> int | None:
             stamp = _STAMP_NS.FromString(payload).stamp_ns
         elif name in _TIMESTAMP_TYPES:
             stamp = _ts_ns(_STAMP_TS.FromString(payload))
+        elif name in _TIMESTAMP5_TYPES:
+            stamp = _ts_ns(_STAMP_TS5.FromString(payload))
         elif name in _FIRST_ITEM_TIMESTAMP_TYPES:
             items = _FIRST_ITEM.FromString(payload).items
             stamp = _ts_ns(items[0]) if items else None

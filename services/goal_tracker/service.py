@@ -4,6 +4,8 @@ Tracker inputs: frames from the configured source (synthetic, device, file, url,
 ``<prefix>/camera/<id>/image`` topic). Outputs, per analysed frame:
 
 * ``<prefix>/vision/faces`` — :class:`FaceDetections` (pixel boxes, confidence, target index);
+* ``<prefix>/camera/<id>/annotations`` — foxglove ``ImageAnnotations``: the same boxes drawn on
+  the camera's images by Foxglove's Image panel (stamped with the frame's stamp);
 * ``<prefix>/goals/<goal_name>`` — :class:`Goal` (position, covariance, valid, invalid_reason,
   source, ``frame_stamp_ns``), and ``<prefix>/viz/goals/<goal_name>`` (foxglove PoseInFrame) when
   valid;
@@ -29,6 +31,7 @@ from services.bus.messages import (
     FaceBox,
     FaceDetections,
     Goal,
+    ImageAnnotations,
     PoseInFrame,
     Vec3,
 )
@@ -102,6 +105,43 @@ def faces_message(out: TrackOutput, seq: int, camera_id: str, size: tuple[int, i
                 confidence=float(min(1.0, max(0.0, d.confidence))),
             )
         )
+    return msg
+
+
+#: Face box outlines on the image (r, g, b, a): the tracked target, the other faces.
+TARGET_RGBA = (0.1, 0.9, 0.2, 1.0)
+OTHER_RGBA = (1.0, 0.8, 0.1, 1.0)
+
+
+def annotations_message(out: TrackOutput) -> ImageAnnotations:
+    """Foxglove ``ImageAnnotations`` of one tracked frame: each face box as a closed outline
+    (pixel coordinates, the tracked target in :data:`TARGET_RGBA`) with its confidence as text,
+    stamped with the frame's stamp so the Image panel draws it on that frame."""
+    from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
+
+    msg = ImageAnnotations()
+    sec, nanos = divmod(out.stamp_ns, 1_000_000_000)
+    msg.timestamp.seconds, msg.timestamp.nanos = sec, nanos
+    for i, d in enumerate(out.detections):
+        rgba = TARGET_RGBA if i == out.target_index else OTHER_RGBA
+        box = msg.points.add()
+        box.timestamp.CopyFrom(msg.timestamp)
+        box.type = PointsAnnotation.LINE_LOOP
+        for x, y in ((d.x, d.y), (d.x + d.w, d.y), (d.x + d.w, d.y + d.h), (d.x, d.y + d.h)):
+            pt = box.points.add()
+            pt.x, pt.y = float(x), float(y)
+        c = box.outline_color
+        c.r, c.g, c.b, c.a = rgba
+        box.thickness = 2.0
+        text = msg.texts.add()
+        text.timestamp.CopyFrom(msg.timestamp)
+        text.position.x, text.position.y = float(d.x), float(d.y) - 4.0
+        text.text = ("target " if i == out.target_index else "") + f"{d.confidence:.2f}"
+        text.font_size = 14.0
+        tc = text.text_color
+        tc.r, tc.g, tc.b, tc.a = rgba
+        bg = text.background_color
+        bg.r, bg.g, bg.b, bg.a = 0.0, 0.0, 0.0, 0.6
     return msg
 
 
@@ -266,6 +306,7 @@ class GoalTrackerService(ServiceApp):
             source = queue_source
         self.source = source
         self.faces_pub = svc.publisher(keys.vision_faces)
+        self.annotations_pub = svc.publisher(keys.camera_annotations(cam.camera_id))
         self.goal_pub = svc.publisher(keys.goal(sec.goal_name))
         self.pose_pub = svc.publisher(keys.goal_pose(sec.goal_name))
         self.image_pub = None if cam.source == "topic" else svc.publisher(keys.camera_image(cam.camera_id))
@@ -276,8 +317,9 @@ class GoalTrackerService(ServiceApp):
 
     def loop(self, svc: Service) -> None:
         assert self.source is not None
-        self.exit_code = _loop(svc, self.sec, self.tracker, self.source, self.faces_pub, self.goal_pub,
-                               self.pose_pub, self.image_pub, self.max_frames)
+        self.exit_code = _loop(svc, self.sec, self.tracker, self.source, self.faces_pub,
+                               self.annotations_pub, self.goal_pub, self.pose_pub, self.image_pub,
+                               self.max_frames)
 
     def teardown(self, svc: Service) -> None:
         if self.source is not None:
@@ -291,6 +333,7 @@ def _loop(
     tracker: Any,
     source: FrameSource,
     faces_pub: Any,
+    annotations_pub: Any,
     goal_pub: Any,
     pose_pub: Any,
     image_pub: Any,
@@ -342,6 +385,7 @@ def _loop(
         if out.valid:
             pose_pub.put(pose_message(out, sec.mount.frame_id))
         faces_pub.put(faces_message(out, seq, cam.camera_id, (w, h)))
+        annotations_pub.put(annotations_message(out))
         if (
             image_pub is not None
             and image_period_ns

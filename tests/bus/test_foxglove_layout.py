@@ -13,7 +13,14 @@ import pytest
 from google.protobuf.descriptor import Descriptor, FieldDescriptor
 
 from services.arm.config import ArmSection
-from services.bus.messages import CompressedImage, FrameTransforms, Keys, PoseInFrame, SceneUpdate
+from services.bus.messages import (
+    CompressedImage,
+    FrameTransforms,
+    ImageAnnotations,
+    Keys,
+    PoseInFrame,
+    SceneUpdate,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 LAYOUT = ROOT / "docs" / "foxglove" / "psm-layout.json"
@@ -91,7 +98,11 @@ def test_every_topic_and_message_path_exists() -> None:
             checked += len(cfg["topics"])
         elif kind == "Image":
             assert _descriptor(cfg["imageMode"]["imageTopic"]) is CompressedImage.DESCRIPTOR
-            checked += 1
+            annotations = cfg["imageMode"]["annotations"]
+            assert annotations and all(a["visible"] for a in annotations.values())
+            for topic in annotations:
+                assert _descriptor(topic) is ImageAnnotations.DESCRIPTOR, topic
+            checked += 1 + len(annotations)
         elif kind == "Plot":
             for p in cfg["paths"]:
                 check_path(p["value"], numeric=True)

@@ -42,7 +42,7 @@ def expected_topics() -> set[str]:
                             k.obstacles, k.scene, k.planner_goal, k.planner_status, k.viz_plan,
                             k.task_events,
                             k.gripper_command, k.vision_faces, k.goal("person"),
-                            k.camera_image("cam0"))}
+                            k.camera_image("cam0"), k.camera_annotations("cam0"))}
     keys |= {k.status(p.service_name).key for p in STACK.processes}
     return keys
 

@@ -87,6 +87,10 @@ def test_recorded_frames_replayed_through_the_tracker_give_the_same_goals(
     faces = [m for _, m, _ in read_log(live, topics=[keys.vision_faces.key])]
     assert len(faces) == FRAMES and all(isinstance(m, FaceDetections) for m in faces)
     assert sum(f.target_index >= 0 for f in faces) >= FRAMES - 2
+    # The same boxes for Foxglove's Image panel, one message per analysed frame at its stamp.
+    notes = {stamp: m for _, m, stamp in read_log(live, topics=[keys.camera_annotations("cam0").key])}
+    assert sorted(notes) == sorted(f.frame_stamp_ns for f in faces)
+    assert all(len(notes[f.frame_stamp_ns].points) == len(f.boxes) for f in faces)
     goals_a = goals_by_frame(live, keys.goal("person").key)
     assert len(goals_a) == FRAMES
 
