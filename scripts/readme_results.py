@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from experiments.registry import EXPERIMENT_MODULES  # noqa: E402
+from experiments.report import format_value  # noqa: E402
 from experiments.result import ExperimentResult  # noqa: E402
 
 README = ROOT / "README.md"
@@ -63,7 +64,7 @@ def results_block(results_dir: Path, images_dir: Path, readme_dir: Path) -> str:
         lines.append("|---|---|---|")
         for h in res.headline.values():
             unit = f" {h.unit}" if h.unit else ""
-            lines.append(f"| {_cell(h.label)} | {_cell(h.value)}{unit} | {_cell(h.detail)} |")
+            lines.append(f"| {_cell(h.label)} | {_cell(format_value(h.value))}{unit} | {_cell(h.detail)} |")
         failed = [f"{k} (target {v['target']}; measured {v['measured']})"
                   for k, v in res.verdicts.items() if not v["ok"]]
         if failed:

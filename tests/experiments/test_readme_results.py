@@ -24,6 +24,7 @@ def test_the_block_holds_each_results_figures_verdicts_and_plots(tmp_path: Path)
     results = tmp_path / "out" / "experiments"
     res = ExperimentResult(name="cylinder", title="Cylinder | strike", seed=3, duration_s=12.4)
     res.headline["landed"] = Headline("PSM landed", "9/9", "runs", "worst release 0.5 % off")
+    res.headline["error"] = Headline("worst final error", 9.987716111982698, "mm", "")
     res.verdict("speed", True, "within 2 %", "0.5 %")
     res.verdict("dmp", False, "DMP fails", "DMP lands 9/9")
     res.figures.append(Figure("cylinder_phase.png", "Phase plots"))
@@ -40,6 +41,7 @@ def test_the_block_holds_each_results_figures_verdicts_and_plots(tmp_path: Path)
     assert "old text" not in text
     assert "**Cylinder \\| strike** (seed 3, 12 s): 1/2 verdicts pass." in text
     assert "| PSM landed | 9/9 runs | worst release 0.5 % off |" in text
+    assert "| worst final error | 9.988 mm |  |" in text  # as the report prints it
     assert "Not met: dmp (target DMP fails; measured DMP lands 9/9)." in text
     # The experiments that did not run say so; the plot is copied and linked relative to the README.
     assert "* **feeding**: no result in" in text
