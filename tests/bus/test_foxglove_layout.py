@@ -84,7 +84,7 @@ def test_the_layout_has_the_format_foxglove_exports() -> None:
     assert set(doc) == {"configById", "layout", "globalVariables", "userNodes", "playbackConfig"}
     assert sorted(_panels(doc["layout"])) == sorted(doc["configById"])  # every panel placed once
     kinds = {pid.split("!")[0] for pid in doc["configById"]}
-    assert kinds == {"3D", "Image", "Plot", "RawMessages", "Table"}
+    assert kinds == {"3D", "Image", "Plot", "RawMessages", "StateTransitions", "Table"}
 
 
 def test_every_topic_and_message_path_exists() -> None:
@@ -110,10 +110,22 @@ def test_every_topic_and_message_path_exists() -> None:
             if cfg["xAxisVal"] == "custom":
                 check_path(cfg["xAxisPath"]["value"], numeric=True)
                 checked += 1
+        elif kind == "StateTransitions":
+            for p in cfg["paths"]:
+                check_path(p["value"], numeric=True)  # an enum: one row of states per series
+                checked += 1
         else:
             check_path(cfg["topicPath"], numeric=False)
             checked += 1
     assert checked >= 20
+
+
+def test_the_state_panel_shows_every_service_of_the_shipped_stack() -> None:
+    from services.stack import load_stack
+
+    stack = load_stack(ROOT / "configs" / "stack.toml")
+    paths = [p["value"] for p in _layout()["configById"]["StateTransitions!services"]["paths"]]
+    assert paths == [f"{KEYS.status(p.service_name).key}.state" for p in stack.processes]
 
 
 def test_the_3d_panel_shows_the_arm_its_model_and_the_task() -> None:
