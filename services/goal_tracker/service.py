@@ -24,6 +24,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
 
 from services.bus.config import ConfigError
 from services.bus.messages import (
@@ -117,8 +118,6 @@ def annotations_message(out: TrackOutput) -> ImageAnnotations:
     """Foxglove ``ImageAnnotations`` of one tracked frame: each face box as a closed outline
     (pixel coordinates, the tracked target in :data:`TARGET_RGBA`) with its confidence as text,
     stamped with the frame's stamp so the Image panel draws it on that frame."""
-    from foxglove_schemas_protobuf.PointsAnnotation_pb2 import PointsAnnotation
-
     msg = ImageAnnotations()
     sec, nanos = divmod(out.stamp_ns, 1_000_000_000)
     msg.timestamp.seconds, msg.timestamp.nanos = sec, nanos

@@ -21,6 +21,14 @@ from typing import Literal
 from pydantic import Field, field_validator
 
 from services.bus.config import Section, ServiceConfig, StrList
+from services.bus.messages import (
+    ArmCommand,
+    ArmState,
+    CollisionPrediction,
+    CompressedImage,
+    FrameTransforms,
+    schema_name_of,
+)
 
 __all__ = ["DEFAULT_MAX_RATE_HZ", "ViewerConfig", "ViewerSection"]
 
@@ -28,11 +36,11 @@ __all__ = ["DEFAULT_MAX_RATE_HZ", "ViewerConfig", "ViewerSection"]
 #: 500 Hz control loop (state, command, collision prediction) and the arm's transforms at 50 Hz
 #: (a 3-D panel or a plot refreshes at 60 Hz at most). Every other type is forwarded unthrottled.
 DEFAULT_MAX_RATE_HZ: dict[str, float] = {
-    "foxglove.CompressedImage": 10.0,
-    "psm.ArmState": 50.0,
-    "psm.ArmCommand": 50.0,
-    "psm.CollisionPrediction": 50.0,
-    "foxglove.FrameTransforms": 50.0,
+    schema_name_of(CompressedImage): 10.0,
+    schema_name_of(ArmState): 50.0,
+    schema_name_of(ArmCommand): 50.0,
+    schema_name_of(CollisionPrediction): 50.0,
+    schema_name_of(FrameTransforms): 50.0,
 }
 
 
