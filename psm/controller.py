@@ -29,6 +29,14 @@ pushes, moved starts and moving goals (paper §III-C..F; corrected equations in 
   takes the nominal time left from there (the segment's nominal duration times the fraction of
   its length still ahead). Without it a dimension at rest short of a via-point at rest crawls
   on the stability margin κ alone, and the synchronisation holds the others back for it;
+* **segment retiming** (option ``segment_retime``, on by default): a segment whose learned slope
+  lies close to the stability bound has a duration that is sensitive to the state it is entered
+  in (a tick short of its via-point, a fraction of a percent slow: several percent longer). When
+  a dimension enters a segment on the demonstrated state but the learned slope would take more
+  than two ticks and 2 % longer or shorter than the nominal time, the slope is re-solved for the
+  nominal time (see :meth:`PSMController._retime_entry`). Without it such a dimension falls
+  behind at the via-point, the synchronisation slows the others, and they in turn miss their
+  next via-points' speeds;
 * **collision stop** (eq. 15): a per-dimension request "stop at x_ob" decelerates with
   ``−v²/(2(x_ob − x))`` while the obstacle lies between the state and the via-point;
 * **saturation**: the segment law (with the synchronisation term) is limited to
@@ -52,6 +60,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from psm.errors import ParameterError, ShapeError
 from psm.pstf import K_MAX_FRACTION, k_for_duration, k_limit, stable_segment_time, time_to_reach
+
+#: Segment retiming (option ``segment_retime``) acts on a segment entered with a velocity within
+#: this fraction of the segment's speed scale ``max(|v_j|, |v_n|)`` of its via-point's ...
+SEGMENT_RETIME_SPEED_FRACTION = 0.1
+#: ... when the learned slope would take longer or shorter than the nominal time by more than
+#: this many control ticks and this fraction of the segment's nominal duration.
+SEGMENT_RETIME_TICKS = 2.0
+SEGMENT_RETIME_DURATION_FRACTION = 0.02
 
 #: Controller modes of one dimension (reported by :attr:`PSMController.modes`).
 MODE_SEGMENT = "segment"
@@ -118,6 +134,7 @@ class PSMController:
         start_retime: bool = False,
         start_shift: bool = False,
         rest_retime: bool = False,
+        segment_retime: bool = True,
     ) -> None:
         validate_sync(sync_mode, sync_time)
         self._D = len(chains)
@@ -129,6 +146,7 @@ class PSMController:
         self._start_retime = bool(start_retime)
         self._start_shift = bool(start_shift)
         self._rest_retime = bool(rest_retime)
+        self._segment_retime = bool(segment_retime)
         # weight of a start displacement at each via-point: the nominal time left there / total
         self._shift_weight = [
             [float(sum(c.durations[j:])) / max(float(sum(c.durations)), 1e-300) for j in range(len(c.k) + 1)]
@@ -391,9 +409,11 @@ class PSMController:
                 continue
             wrong_way = v_along < 0.0 and -v_along > m * dt
             v_eff = v if v_along >= 0.0 else 0.0  # a wrong-way speed below one tick of m is rest
+            k_learned = chain.k[j]
             if j != self._segment[d]:
                 self._k_cap[d] = math.inf
-            k_learned = chain.k[j]
+                if self._segment_retime and not chain.hold and not wrong_way:
+                    self._retime_entry(d, j, x, v, v_eff, x_n, v_n, delta, dt)
             if self._retime_pending[d]:
                 # First step of the motion: the start may lie anywhere (another start point than
                 # the demonstration's). Re-solve this segment's k once so that it takes its
@@ -511,6 +531,44 @@ class PSMController:
             s_ = math.sin(r) / r
         a = (v_eff * c_m1 + a_c * dt * s_) / dt + (v_eff - v) / dt
         return a, te, MODE_SEGMENT
+
+    def _retime_entry(
+        self, d: int, j: int, x: float, v: float, v_eff: float, x_n: float, v_n: float, delta: float,
+        dt: float,
+    ) -> None:
+        """Segment retiming: dimension ``d`` has just entered segment ``j`` in the state ``(x, v)``.
+
+        A slope ``k`` close to the stability bound makes a segment's duration sensitive to its
+        entry state: entering a tick short of the via-point, a fraction of a percent slow, can
+        stretch it by several percent. Where the entry is on the demonstrated state (the velocity
+        within :data:`SEGMENT_RETIME_SPEED_FRACTION` of the segment's speed scale) but the learned
+        slope would take longer or shorter than the nominal time left by more than
+        :data:`SEGMENT_RETIME_TICKS` ticks and :data:`SEGMENT_RETIME_DURATION_FRACTION` of the
+        duration, the slope is re-solved for that time (the nominal duration less the time since
+        the via-point, at most one tick). An entry away from the via-point's state (farther from
+        its position than one tick of travel plus the position tolerance: a start inside the
+        chain, a skipped via-point; or at another velocity: a push) keeps the learned slope."""
+        chain = self._chains[d]
+        duration = chain.durations[j]
+        v_j = self._vels[d][j]
+        if duration <= 0.0 or abs(v - v_j) > SEGMENT_RETIME_SPEED_FRACTION * max(abs(v_j), abs(v_n)):
+            return
+        k_hi = k_limit(v_eff, v_n, delta, chain.kappa[j])
+        if k_hi == -math.inf:
+            return
+        past = (x - self._goal[d] - self._offsets[d][j]) * self._dir[d][j]
+        if abs(past) > max(abs(v), abs(v_j)) * dt + self._pos_tol:
+            return  # not entered at its via-point (a start inside the chain, a skipped via-point)
+        elapsed = min(dt, past / abs(v)) if past > 0.0 and v != 0.0 else 0.0
+        t_left = max(duration - elapsed, 2.0 * dt)
+        k_try = min(chain.k[j], k_hi)
+        t_learned = time_to_reach(x, v_eff, x_n, v_n, k_try)
+        slack = max(SEGMENT_RETIME_TICKS * dt, SEGMENT_RETIME_DURATION_FRACTION * duration)
+        if abs(t_learned - t_left) <= slack:
+            return
+        k_new = k_for_duration(x, v_eff, x_n, v_n, t_left, k_hi, k_guess=k_try)
+        if math.isfinite(k_new):
+            self._k_start[d] = (j, k_new)
 
     def _shift_start(self, d: int, x_rel: float) -> None:
         """Start shift of dimension ``d`` started at ``x_rel`` (relative to the goal).

@@ -392,6 +392,7 @@ class PhaseSpaceModel:
         start_retime: bool | None = None,
         start_shift: bool | None = None,
         rest_retime: bool = False,
+        segment_retime: bool = True,
     ) -> PSMController:
         """An online controller towards ``goal (D,)`` [unit] (default: the demonstration's goal).
 
@@ -399,8 +400,10 @@ class PhaseSpaceModel:
         ``wrong_way_accel`` override the model's defaults; ``terminal_omega`` [rad/s] is the
         goal-holding spring's natural frequency (default ``0.2/dt``). ``rest_retime`` (off by
         default, not a model parameter): a dimension brought to rest inside a segment (held,
-        stopped by a push) re-solves that segment's slope for the nominal time left, see
-        :class:`~psm.controller.PSMController`."""
+        stopped by a push) re-solves that segment's slope for the nominal time left;
+        ``segment_retime`` (on by default, not a model parameter): a segment entered on its
+        demonstrated state but whose learned slope would run off its nominal duration re-solves
+        the slope for it. See :class:`~psm.controller.PSMController`."""
         g = self._check_vector("goal", goal, self._goal)
         m = (
             np.asarray(self.parameters.wrong_way_accel)
@@ -427,6 +430,7 @@ class PhaseSpaceModel:
             start_retime=self.parameters.start_retime if start_retime is None else bool(start_retime),
             start_shift=self.parameters.start_shift if start_shift is None else bool(start_shift),
             rest_retime=bool(rest_retime),
+            segment_retime=bool(segment_retime),
         )
 
     def rollout(
@@ -445,6 +449,7 @@ class PhaseSpaceModel:
         start_retime: bool | None = None,
         start_shift: bool | None = None,
         rest_retime: bool = False,
+        segment_retime: bool = True,
     ) -> Rollout:
         """Generate a motion from ``x0 (D,)`` [unit] (default: the demonstration's start) with initial
         velocity ``v0 (D,)`` [unit/s] (default 0) towards ``goal (D,)`` (default: the demonstration's).
@@ -454,7 +459,8 @@ class PhaseSpaceModel:
         (x, v)`` lets a caller push the state before each control step. Stops once the goal is held
         or after ``max_duration`` [s] (default: three times the nominal duration plus one second).
         ``sync_gain``, ``sync_mode``, ``sync_time``, ``start_retime`` and ``start_shift`` override
-        the model's defaults for this rollout; ``rest_retime`` as in :meth:`controller`.
+        the model's defaults for this rollout; ``rest_retime`` and ``segment_retime`` as in
+        :meth:`controller`.
         """
         x = self._check_vector("x0", x0, self._start)
         v = self._check_vector("v0", v0, np.zeros(self.dim))
@@ -473,6 +479,7 @@ class PhaseSpaceModel:
             start_retime=start_retime,
             start_shift=start_shift,
             rest_retime=rest_retime,
+            segment_retime=segment_retime,
         )
         n_max = math.ceil(max_duration / dt) + 1
         D = self.dim
