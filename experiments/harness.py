@@ -58,18 +58,22 @@ __all__ = [
 class StackSettings:
     """The stack file's settings that shape a run: ``arm`` (``[arm]``, an
     :class:`~services.arm.config.ArmSection`), ``monitor`` (``[obstacle_monitor]`` fields other
-    than the obstacles) and the planner's ``prediction_max_age_s`` [s]."""
+    than the obstacles), the planner's ``prediction_max_age_s`` [s] and its
+    ``joint_accel_fraction``."""
 
     arm: Any
     monitor: dict[str, Any]
     prediction_max_age_s: float
+    joint_accel_fraction: float
 
     def arm_fields(self) -> dict[str, Any]:
         """The ``[arm]`` fields :func:`~services.planner.simulate.simulate_task` passes on to the
-        simulator (all of them but the period and the start pose, which it takes itself)."""
+        simulator and its robot (all of them but the period and the start pose, which it takes
+        itself)."""
         from services.arm.sim import ArmSimConfig
+        from services.robot.description import RobotDescription
 
-        keep = set(ArmSimConfig.model_fields) - {"dt_s", "start_pose"}
+        keep = (set(ArmSimConfig.model_fields) | set(RobotDescription.model_fields)) - {"dt_s", "start_pose"}
         return {k: v for k, v in self.arm.model_dump().items() if k in keep}
 
 
@@ -83,7 +87,9 @@ def stack_settings(path: Path = STACK_FILE, overrides: Mapping[str, Any] | None 
     planner = st.configs["planner"].planner  # type: ignore[attr-defined]
     skip = {"obstacles", "obstacles_file", "rt_priority"}
     monitor = {k: v for k, v in mon.model_dump().items() if k not in skip}
-    return StackSettings(arm, monitor, float(planner.prediction_max_age_s))
+    return StackSettings(
+        arm, monitor, float(planner.prediction_max_age_s), float(planner.joint_accel_fraction)
+    )
 
 
 def feeding_models(task: Any) -> Any:
@@ -129,6 +135,7 @@ def run_in_process(
         cfg, models, goals=goals, goal_updates=goal_updates, start_pose=settings.arm.start_pose,
         dt_s=settings.arm.dt_s, max_s=max_s, arm=settings.arm_fields(), collision=fn,
         prediction_max_age_s=settings.prediction_max_age_s,
+        joint_accel_fraction=settings.joint_accel_fraction,
     )
     res.monitor = fn.monitor  # type: ignore[attr-defined]
     return res

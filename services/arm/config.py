@@ -22,21 +22,15 @@ from pydantic import Field
 
 from services.arm.sim import ArmSimConfig
 from services.bus.config import ConfigError, ServiceConfig, StrList
+from services.robot.description import RobotDescription
 from services.robot.model import RobotModel
 
 
-class ArmSection(ArmSimConfig):
-    """The ``[arm]`` table (units in the field descriptions)."""
+class ArmSection(ArmSimConfig, RobotDescription):
+    """The ``[arm]`` table (units in the field descriptions): the simulator's parameters, the
+    robot it simulates (:class:`~services.robot.description.RobotDescription`, which the planner
+    reads too) and the service's own fields."""
 
-    urdf: str = Field("", description="URDF file of the robot ('' = Franka Panda from example-robot-data)")
-    ee_frame: str = Field("", description="end-effector frame ('' = panda_hand_tcp / the last frame)")
-    locked_joints: list[str] | None = Field(
-        None, description="joints fixed at their neutral value (unset = the Panda's fingers)"
-    )
-    accel_limits: list[float] = Field(
-        default_factory=list,
-        description="joint acceleration limits [rad/s^2] (empty = Panda datasheet; 10 for other robots)",
-    )
     frame_id: str = Field("base", description="name of the robot base frame (Cartesian quantities, TF root)")
     lockstep_timeout_s: float = Field(
         0.5, gt=0.0, le=60.0, description="lockstep: wall time to wait for the command answering a state [s]"
@@ -66,12 +60,7 @@ class ArmSection(ArmSimConfig):
     def load_robot(self) -> RobotModel:
         """Load the configured robot model and check the poses against it (raises
         :class:`ConfigError` on a bad model or pose)."""
-        try:
-            robot = RobotModel.load(
-                self.urdf or None, self.ee_frame or None, self.locked_joints, self.accel_limits or None
-            )
-        except (ValueError, FileNotFoundError) as exc:
-            raise ConfigError("arm.urdf", str(exc)) from None
+        robot = self.robot_model()
         for name in ("start_pose", "posture"):
             pose = getattr(self, name)
             if pose is None:

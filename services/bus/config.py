@@ -424,6 +424,8 @@ def _check_override_paths(cls: type[BaseModel], tree: Mapping[str, Any], prefix:
         path = f"{prefix}{key}"
         field = cls.model_fields.get(key)
         if field is None:
+            if cls.model_config.get("extra") == "ignore":
+                continue  # a view of another service's table (e.g. the planner's of [arm])
             raise ConfigError(path, "unknown field")
         ann = field.annotation
         if isinstance(value, dict) and isinstance(ann, type) and issubclass(ann, BaseModel):

@@ -19,6 +19,7 @@ from typing import Literal
 from pydantic import Field
 
 from services.bus.config import ConfigError, Section, ServiceConfig
+from services.robot.description import ArmRobotView
 from services.robot.protocol import MAX_TICK_GAP, RESYNC_AFTER, STAMP_TOLERANCE_S
 
 __all__ = ["PlannerConfig", "PlannerSection"]
@@ -79,6 +80,12 @@ class PlannerSection(Section):
         le=5.0,
         description="a collision prediction older than this (stack clock) counts as none [s]",
     )
+    joint_accel_fraction: float = Field(
+        0.8, ge=0.0, le=1.0,
+        description="scale each command so that its linear acceleration needs at most this fraction of "
+        "every joint's acceleration limit, the rest left to the arm's orientation and posture terms (the "
+        "robot: the [arm] table's; 0 = no scaling)",
+    )
     monitor_service: str = Field(
         "obstacle_monitor", min_length=1, description="the obstacle monitor's service name (liveliness)"
     )
@@ -99,3 +106,7 @@ class PlannerConfig(ServiceConfig):
     """Config of the ``psm plan`` service: bus settings + ``[planner]``."""
 
     planner: PlannerSection = Field(default_factory=PlannerSection)
+    arm: ArmRobotView = Field(
+        default_factory=ArmRobotView,
+        description="the robot the arm simulates: the [arm] table's robot fields",
+    )

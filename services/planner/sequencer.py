@@ -53,6 +53,7 @@ from numpy.typing import NDArray
 
 from psm import PhaseSpaceModel, PSMController
 from psm.controller import MODE_STOP, MODE_TERMINAL
+from services.planner.feasibility import JointAccelerationScaling
 from services.planner.orientation import OrientationProfile, OrientationTracker
 from services.planner.task import StepSpec, TaskSpec
 
@@ -175,6 +176,8 @@ class StepReport:
     follow_sq: float = 0.0  #: sum of squared distances to the goal once reached (dwell, follow)
     follow_n: int = 0
     follow_max_m: float = 0.0
+    scaled_ticks: int = 0  #: commands scaled into the joint acceleration limits
+    min_accel_scale: float = 1.0  #: the smallest of those factors
 
     def set_goal(self, goal: NDArray[np.float64], x: NDArray[np.float64]) -> None:
         """The step's goal became known with the arm at ``x (3,)`` [m] (distances start here)."""
@@ -205,6 +208,8 @@ class StepReport:
             "away_m": [float(a) for a in away],
             "hold_rms_m": math.sqrt(self.follow_sq / self.follow_n) if self.follow_n else None,
             "hold_max_m": self.follow_max_m if self.follow_n else None,
+            "accel_scaled_ticks": self.scaled_ticks,
+            "min_accel_scale": self.min_accel_scale,
         }
         if self.demo is not None:
             out["demo_peak_speed_mps"] = self.demo.peak_speed
@@ -328,6 +333,8 @@ class TaskRunner:
             ``orientation = "hold"``, keeps its start orientation).
         demos: the demonstration figures per step name (for the step reports).
         collision: use the obstacle monitor's predictions (None: no obstacle handling).
+        feasibility: scale the motion's commands into the arm's joint acceleration limits
+            (:mod:`services.planner.feasibility`; needs the joints in :meth:`step`).
     """
 
     def __init__(
@@ -338,6 +345,7 @@ class TaskRunner:
         profiles: Mapping[str, OrientationProfile] | None = None,
         demos: Mapping[str, DemoFigures] | None = None,
         collision: CollisionPolicy | None = None,
+        feasibility: JointAccelerationScaling | None = None,
     ) -> None:
         missing = [s.name for s in task.steps if s.name not in models]
         if missing:
@@ -381,6 +389,7 @@ class TaskRunner:
         self.distance = math.nan
         self.speed = 0.0
         self.collision_policy = collision
+        self.feasibility = feasibility
         self._collision: CollisionInfo | None = None
         self._monitor_alive = True
         self._guard = ""  # why every axis is braked for the obstacles ("" = not)
@@ -498,10 +507,12 @@ class TaskRunner:
         *,
         tick: int = 0,
         measured_accel: NDArray[np.float64] | None = None,
+        joints: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
     ) -> PlannerOutput:
         """The command for the arm state at ``now_ns`` [ns]: EE position ``x (3,)`` [m], velocity
         ``v (3,)`` [m/s], orientation ``quat (4,)`` xyzw; ``dt`` [s] the control period;
-        ``measured_accel (3,)`` [m/s²] (for the step report)."""
+        ``measured_accel (3,)`` [m/s²] (for the step report); ``joints``: ``(q, dq)`` ``(n,)``
+        [rad, rad/s], for the joint acceleration scaling."""
         self._tick, self._now_ns = tick, now_ns
         if self.state == IDLE:
             self._last_quat = np.asarray(quat, dtype=float).copy()  # held until a step sets one
@@ -532,6 +543,8 @@ class TaskRunner:
             out = self._available(spec, rep, goal, goal_vel, now_ns, x, v, quat, dt)
             if self.collision_policy is not None and self._phase == "run":
                 self._check_blocked(rep, dt)
+        if self.feasibility is not None and joints is not None:
+            self._scale_into_limits(out, rep, joints)
         if rep.outcome == "running":
             rep.peak_speed_mps = max(rep.peak_speed_mps, speed)
             if measured_accel is not None:
@@ -617,6 +630,27 @@ class TaskRunner:
             )
             return self._hold(x, v, quat)
         return PlannerOutput(np.asarray(acc, dtype=float), q, omega)
+
+    def _scale_into_limits(
+        self, out: PlannerOutput, rep: StepReport, joints: tuple[NDArray[np.float64], NDArray[np.float64]]
+    ) -> None:
+        """Scale the motion's command ``out`` into the joint acceleration limits (see
+        :mod:`services.planner.feasibility`): a PSM motion (the step, its dwell or following, the
+        neutral detour), never a brake (collision stop, guard, hold)."""
+        if self._phase in ("run", "dwell"):
+            ctrl = self._ctrl
+        elif self._phase == "neutral":
+            ctrl = self._neutral_ctrl
+        else:
+            return
+        if ctrl is None or MODE_STOP in ctrl.modes or self._guard:
+            return
+        assert self.feasibility is not None
+        s = self.feasibility.scale(joints[0], joints[1], out.acceleration)
+        if s < 1.0:
+            out.acceleration = out.acceleration * s
+            rep.scaled_ticks += 1
+            rep.min_accel_scale = min(rep.min_accel_scale, s)
 
     def _unavailable(
         self,

@@ -80,6 +80,7 @@ from services.bus.messages import (
 )
 from services.bus.runtime import Service, ServiceApp, run_service
 from services.planner.config import PlannerConfig
+from services.planner.feasibility import JointAccelerationScaling
 from services.planner.models import DEMOS_DIR, ModelCache, load_task_models
 from services.planner.progress import ProgressError, TaskProgress, read_progress, write_progress
 from services.planner.sequencer import CollisionInfo, CollisionPolicy, TaskRunner
@@ -121,6 +122,16 @@ class PlannerService(ServiceApp):
         self.models = load_task_models(self.task_config.task, cache, demos)
         scene = self.task_config.scene
         self._check_collisions = sec.collision_check == "required"
+        # The robot the arm simulates, from the [arm] table's robot fields: the commands are
+        # scaled into its joint acceleration limits (services/planner/feasibility.py).
+        feasibility = (
+            JointAccelerationScaling(config.arm.robot_model(), sec.joint_accel_fraction)
+            if sec.joint_accel_fraction > 0.0
+            else None
+        )
+        self._n_joints = feasibility.robot.n if feasibility is not None else 0
+        self._joints = (np.zeros(self._n_joints), np.zeros(self._n_joints))
+        self._joints_problem = ""
         self.runner = TaskRunner(
             self.task_config.task,
             scene.positions(),
@@ -128,6 +139,7 @@ class PlannerService(ServiceApp):
             self.models.profiles,
             self.models.demos,
             collision=CollisionPolicy(sec.prediction_max_age_s) if self._check_collisions else None,
+            feasibility=feasibility,
         )
         # Lockstep: answer a state once the prediction for its tick is in (deterministic runs).
         self._wait_prediction = self._check_collisions and config.clock == "lockstep"
@@ -414,7 +426,19 @@ class PlannerService(ServiceApp):
         self._dt_s = dt
         if self._dt_ns == 0:
             self._first_state(tick, stamp, dt)
-        out = self.runner.step(stamp, x, vv, q, dt, tick=tick, measured_accel=acc)
+        joints = None
+        if self._n_joints:
+            if len(st.q) == self._n_joints and len(st.dq) == self._n_joints:
+                joints = self._joints
+                joints[0][:] = st.q
+                joints[1][:] = st.dq
+            elif not self._joints_problem:
+                self._joints_problem = (
+                    f"the arm has {len(st.q)} joints, the planner's robot {self._n_joints}: commands are not "
+                    "scaled into the joint limits (check the [arm] table's robot)"
+                )
+                self.svc.log.warning(self._joints_problem)
+        out = self.runner.step(stamp, x, vv, q, dt, tick=tick, measured_accel=acc, joints=joints)
         events = self.runner.drain_events()
         if events:
             self._events.extend(events)

@@ -118,6 +118,7 @@ def simulate_task(
     arm: Mapping[str, Any] | None = None,
     collision: CollisionFn | None = None,
     prediction_max_age_s: float = 0.02,
+    joint_accel_fraction: float | None = None,
 ) -> SimulationResult:
     """Run ``config`` (a :class:`~services.tasks.feeding.FeedingConfig`: scene + task) to its end
     (done or aborted) or ``max_s`` of sim time.
@@ -135,17 +136,28 @@ def simulate_task(
             it used, kept while it has none), its prediction is applied at once (as in a
             lockstep run over the bus).
         prediction_max_age_s: the planner's ``prediction_max_age_s`` (with ``collision``).
+        joint_accel_fraction: the planner's ``joint_accel_fraction`` (None: its default; 0: the
+            commands are not scaled into the joint limits).
     """
     from services.arm.config import ArmSection
     from services.arm.sim import ArmSim
+    from services.planner.config import PlannerSection
+    from services.planner.feasibility import JointAccelerationScaling
     from services.robot.protocol import Command, CommandMode
 
     section = ArmSection(dt_s=dt_s, start_pose=start_pose, **dict(arm or {}))
     robot = section.load_robot()
     sim = ArmSim(robot, section)
     policy = CollisionPolicy(prediction_max_age_s) if collision is not None else None
+    if joint_accel_fraction is None:
+        joint_accel_fraction = PlannerSection.model_fields["joint_accel_fraction"].default
+    # The planner's own instance of the robot (the simulator's model data is the arm's).
+    feasibility = None
+    if joint_accel_fraction > 0.0:
+        feasibility = JointAccelerationScaling(section.robot_model(), joint_accel_fraction)
     runner = TaskRunner(
-        config.task, config.scene.positions(), models.models, models.profiles, models.demos, collision=policy
+        config.task, config.scene.positions(), models.models, models.profiles, models.demos, collision=policy,
+        feasibility=feasibility,
     )
     goal_every = max(1, round(1.0 / (goal_rate_hz * dt_s))) if goals is not None else 0
     pending = sorted(goal_updates, key=lambda u: u.tick)
@@ -188,6 +200,7 @@ def simulate_task(
             dt_s,
             tick=snap.tick,
             measured_accel=ee.linear_acceleration,
+            joints=(snap.q, snap.dq),
         )
         last_stamp = t_ns
         events.extend(runner.drain_events())

@@ -39,10 +39,14 @@ def _kinds(res: Any) -> list[tuple[str, str]]:
 
 
 # ---------------------------------------------------------------------------- the sequence
-@pytest.mark.parametrize("start_pose", ["ready", "neutral", "home"])
+@pytest.mark.parametrize("start_pose", ["ready", "middle", "home"])
 def test_the_feeding_sequence_completes_from_several_start_poses(
     feeding: FeedingConfig, models: TaskModels, start_pose: str
 ) -> None:
+    # Not from the stretched "neutral" pose: its elbow sits at its joint limit, where the arm's
+    # differential inverse kinematics cannot follow a reach forward and down (docs/arm.md,
+    # "Known limits"); a run from it succeeded or not by chance, after sweeping the hand behind
+    # the robot.
     res = simulate_task(feeding, models, goals=_static_person(feeding), start_pose=start_pose)
     s = res.summary
     assert s["success"], (s["state"], s["detail"])
