@@ -53,7 +53,7 @@ from numpy.typing import NDArray
 
 from psm import PhaseSpaceModel, PSMController
 from psm.controller import MODE_STOP, MODE_TERMINAL
-from services.planner.feasibility import JointAccelerationScaling
+from services.planner.feasibility import JointAccelerationScaling, Joints
 from services.planner.orientation import OrientationProfile, OrientationTracker
 from services.planner.task import StepSpec, TaskSpec
 
@@ -507,12 +507,13 @@ class TaskRunner:
         *,
         tick: int = 0,
         measured_accel: NDArray[np.float64] | None = None,
-        joints: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+        joints: Joints | None = None,
     ) -> PlannerOutput:
         """The command for the arm state at ``now_ns`` [ns]: EE position ``x (3,)`` [m], velocity
         ``v (3,)`` [m/s], orientation ``quat (4,)`` xyzw; ``dt`` [s] the control period;
-        ``measured_accel (3,)`` [m/s²] (for the step report); ``joints``: ``(q, dq)`` ``(n,)``
-        [rad, rad/s], for the joint acceleration scaling."""
+        ``measured_accel (3,)`` [m/s²] (for the step report); ``joints``: a function giving the
+        state's ``(q, dq)`` ``(n,)`` [rad, rad/s] (or None), for the joint acceleration scaling
+        (called only on the ticks that need them)."""
         self._tick, self._now_ns = tick, now_ns
         if self.state == IDLE:
             self._last_quat = np.asarray(quat, dtype=float).copy()  # held until a step sets one
@@ -631,9 +632,7 @@ class TaskRunner:
             return self._hold(x, v, quat)
         return PlannerOutput(np.asarray(acc, dtype=float), q, omega)
 
-    def _scale_into_limits(
-        self, out: PlannerOutput, rep: StepReport, joints: tuple[NDArray[np.float64], NDArray[np.float64]]
-    ) -> None:
+    def _scale_into_limits(self, out: PlannerOutput, rep: StepReport, joints: Joints) -> None:
         """Scale the motion's command ``out`` into the joint acceleration limits (see
         :mod:`services.planner.feasibility`): a PSM motion (the step, its dwell or following, the
         neutral detour), never a brake (collision stop, guard, hold)."""
@@ -646,7 +645,7 @@ class TaskRunner:
         if ctrl is None or MODE_STOP in ctrl.modes or self._guard:
             return
         assert self.feasibility is not None
-        s = self.feasibility.scale(joints[0], joints[1], out.acceleration)
+        s = self.feasibility.scale(out.acceleration, self._tick, joints)
         if s < 1.0:
             out.acceleration = out.acceleration * s
             rep.scaled_ticks += 1

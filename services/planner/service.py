@@ -131,7 +131,9 @@ class PlannerService(ServiceApp):
         )
         self._n_joints = feasibility.robot.n if feasibility is not None else 0
         self._joints = (np.zeros(self._n_joints), np.zeros(self._n_joints))
+        self._joint_state: ArmState | None = None  # the state being answered (its joints, when needed)
         self._joints_problem = ""
+        self._joints_fn = self._read_joints if self._n_joints else None
         self.runner = TaskRunner(
             self.task_config.task,
             scene.positions(),
@@ -382,6 +384,26 @@ class PlannerService(ServiceApp):
                 self.svc.log.warning("obstacle monitor gone: braking every axis", extra={"service": name})
                 self._answer_parked()
 
+    def _read_joints(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The joints ``(q, dq)`` of the state being answered, for the joint acceleration scaling
+        (None, with one warning, when the arm's joints are not the planner's robot's)."""
+        st = self._joint_state
+        if st is None:
+            return None
+        n = self._n_joints
+        if len(st.q) != n or len(st.dq) != n:
+            if not self._joints_problem:
+                self._joints_problem = (
+                    f"the arm has {len(st.q)} joints, the planner's robot {n}: commands are not scaled "
+                    "into the joint limits (check the [arm] table's robot)"
+                )
+                self.svc.log.warning(self._joints_problem)
+            return None
+        q, dq = self._joints
+        q[:] = st.q
+        dq[:] = st.dq
+        return q, dq
+
     def _answer(self, st: ArmState) -> bytes | None:
         """The command bytes answering ``st``, or None when it is rejected (under the lock)."""
         tick, stamp = int(st.tick), int(st.stamp_ns)
@@ -426,19 +448,8 @@ class PlannerService(ServiceApp):
         self._dt_s = dt
         if self._dt_ns == 0:
             self._first_state(tick, stamp, dt)
-        joints = None
-        if self._n_joints:
-            if len(st.q) == self._n_joints and len(st.dq) == self._n_joints:
-                joints = self._joints
-                joints[0][:] = st.q
-                joints[1][:] = st.dq
-            elif not self._joints_problem:
-                self._joints_problem = (
-                    f"the arm has {len(st.q)} joints, the planner's robot {self._n_joints}: commands are not "
-                    "scaled into the joint limits (check the [arm] table's robot)"
-                )
-                self.svc.log.warning(self._joints_problem)
-        out = self.runner.step(stamp, x, vv, q, dt, tick=tick, measured_accel=acc, joints=joints)
+        self._joint_state = st
+        out = self.runner.step(stamp, x, vv, q, dt, tick=tick, measured_accel=acc, joints=self._joints_fn)
         events = self.runner.drain_events()
         if events:
             self._events.extend(events)

@@ -200,7 +200,7 @@ def simulate_task(
             dt_s,
             tick=snap.tick,
             measured_accel=ee.linear_acceleration,
-            joints=(snap.q, snap.dq),
+            joints=lambda snap=snap: (snap.q, snap.dq),
         )
         last_stamp = t_ns
         events.extend(runner.drain_events())

@@ -61,15 +61,15 @@ def test_near_a_singular_pose_nothing_is_scaled(monkeypatch: pytest.MonkeyPatch)
     S[-1] = 1e-3
     monkeypatch.setattr(robot, "jacobian", lambda: (U * S) @ Vt)
     a = np.array([5.0, -5.0, 5.0])
-    assert JointAccelerationScaling(robot, FRACTION).scale(q, np.zeros(robot.n), a) == 1.0
+    assert JointAccelerationScaling(robot, FRACTION).scale(a, 0, lambda: (q, np.zeros(robot.n))) == 1.0
     monkeypatch.undo()
-    assert JointAccelerationScaling(robot, FRACTION).scale(q, np.zeros(robot.n), 10 * a) < 1.0
+    assert JointAccelerationScaling(robot, FRACTION).scale(10 * a, 0, lambda: (q, np.zeros(robot.n))) < 1.0
 
 
 def test_a_command_within_the_limits_is_not_scaled(robot: RobotModel) -> None:
     scaling = JointAccelerationScaling(robot, FRACTION)
     q = robot.resolve_pose("ready")
-    assert scaling.scale(q, np.zeros(robot.n), np.array([0.1, -0.2, 0.05])) == 1.0
+    assert scaling.scale(np.array([0.1, -0.2, 0.05]), 0, lambda: (q, np.zeros(robot.n))) == 1.0
     assert scaling.scaled_ticks == 0 and scaling.min_scale == 1.0
 
 
@@ -86,7 +86,7 @@ def test_the_scaled_command_keeps_every_joint_within_its_share(
     q = np.clip(q, robot.limits.lower, robot.limits.upper)
     dqv, av = np.asarray(dq), np.asarray(a)
     limit = FRACTION * robot.limits.acceleration
-    s = JointAccelerationScaling(robot, FRACTION).scale(q, dqv, av)
+    s = JointAccelerationScaling(robot, FRACTION).scale(av, 0, lambda: (q, dqv))
     assert 0.0 <= s <= 1.0
     if _sigma_min(robot, q) < SINGULAR_SIGMA / math.sqrt(6.0):
         assert s == 1.0  # near a singular pose the arm's damped inverse takes over
@@ -136,3 +136,29 @@ def test_the_far_grid_row_runs_without_a_joint_clamp() -> None:
         counts[fraction] = len(clamped)
     assert counts[0.0] > 0, counts  # the premise: unscaled, the arm clamps here
     assert counts[settings_.joint_accel_fraction] == 0, counts
+
+
+def test_the_kinematics_run_on_few_ticks_and_every_scaled_command_uses_fresh_ones(robot: RobotModel) -> None:
+    from services.planner.feasibility import REFRESH_TICKS
+
+    scaling = JointAccelerationScaling(robot, FRACTION)
+    q0 = robot.resolve_pose("ready")
+    calls: list[int] = []
+    state = {"q": q0}
+
+    def joints() -> tuple[np.ndarray, np.ndarray]:
+        calls.append(1)
+        return state["q"], np.zeros(robot.n)
+
+    small = np.array([0.1, 0.0, 0.0])
+    for tick in range(3 * REFRESH_TICKS):
+        assert scaling.scale(small, tick, joints) == 1.0
+    assert len(calls) == 3  # once per REFRESH_TICKS
+    # A large command on a cached tick: the joints are read again (they moved) and the factor is
+    # the one computed from scratch there.
+    state["q"] = q0 + 0.05
+    big = np.array([40.0, -20.0, 10.0])
+    s = scaling.scale(big, 3 * REFRESH_TICKS - 1, joints)  # cached since tick 2 * REFRESH_TICKS
+    assert len(calls) == 4
+    fresh = JointAccelerationScaling(robot, FRACTION)
+    assert s == fresh.scale(big, 0, lambda: (state["q"], np.zeros(robot.n))) < 1.0
