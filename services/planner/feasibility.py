@@ -17,10 +17,10 @@ with ``J⁺ = Jᵀ (J Jᵀ)⁻¹`` at the measured ``(q, q̇)``; a joint whose s
 exceeds sets no bound, and near a singular pose (``σ_min(J)`` below :data:`SINGULAR_SIGMA`,
 where the arm's damped inverse bounds the joint accelerations) nothing is scaled. The rest of
 each limit, ``(1 − f) L``, is left to what the planner does not model: the arm's orientation and
-posture terms. Scaling
-keeps the command's direction; the PSM re-solves its law from the state it gets at the next tick,
-so a scaled motion passes the same via-points a little later. Collision braking (eq. 15) is
-never scaled (:class:`~services.planner.sequencer.TaskRunner` only scales the motion itself).
+posture terms. Scaling keeps the command's direction; the PSM re-solves its law from the state it
+gets at the next tick, so a scaled motion passes the same via-points a little later. Collision
+braking (eq. 15) is never scaled (:class:`~services.planner.sequencer.TaskRunner` only scales
+the motion itself).
 """
 
 from __future__ import annotations
@@ -30,15 +30,16 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
+from services.arm.controller import ControllerGains
 from services.robot.model import RobotModel
 
 __all__ = ["JointAccelerationScaling"]
 
 #: Below this smallest singular value of ``J`` [m] (a lower bound, ``1/‖(J Jᵀ)⁻¹‖_F``) the
 #: commands are not scaled: near a singular pose the undamped estimate of the joint accelerations
-#: grows without bound, while the arm's damped inverse kinematics bounds them (its
-#: ``[arm.gains] singular_epsilon``, 0.04 by default, is where its damping starts).
-SINGULAR_SIGMA = 0.04
+#: grows without bound, while the arm's damped inverse kinematics bounds them. It is where the
+#: arm's damping starts by default (``[arm.gains] singular_epsilon``).
+SINGULAR_SIGMA: float = ControllerGains.model_fields["singular_epsilon"].default
 
 
 #: The joint accelerations per unit command (``J⁺`` and the drift's share) are recomputed at
@@ -55,13 +56,12 @@ Joints = Callable[[], "tuple[NDArray[np.float64], NDArray[np.float64]] | None"]
 class JointAccelerationScaling:
     """Scale factors of Cartesian commands for the robot ``robot`` (its own model data: it must
     not be the arm simulation's instance), using the fraction ``fraction`` ∈ (0, 1] of each joint
-    acceleration limit. ``scaled_ticks`` counts the commands scaled, ``min_scale`` is the
-    smallest factor so far.
+    acceleration limit (the planner counts the scaled commands per step).
 
     The joint accelerations per unit command ``M = J⁺[:, :3]`` (n, 3) and of the drift
     ``d₀ = −J⁺ J̇q̇`` (n,) are cached: recomputed every :data:`REFRESH_TICKS` ticks and whenever
     the cached ones put the command above :data:`QUICK_FRACTION` of a joint's share, so every
-    command that is scaled is scaled with the current joints' values (and the kinematics, ~15 µs,
+    command that is scaled is scaled with the current joints' values (and the kinematics, ~25 µs,
     run on few ticks)."""
 
     def __init__(self, robot: RobotModel, fraction: float) -> None:
@@ -76,8 +76,6 @@ class JointAccelerationScaling:
         self._singular = False
         self._quick_norm_sq = 0.0
         self._tick_at: int | None = None
-        self.scaled_ticks = 0
-        self.min_scale = 1.0
 
     def _refresh(self, tick: int, joints: Joints) -> bool:
         """Recompute ``M`` and ``d₀`` at the joints ``joints()`` gives (``(q, dq)`` (n,) [rad,
@@ -144,7 +142,4 @@ class JointAccelerationScaling:
                 continue
             hi = (L - d0) / da if da > 0.0 else (-L - d0) / da
             s = min(s, hi)
-        s = max(0.0, s)
-        self.scaled_ticks += 1
-        self.min_scale = min(self.min_scale, s)
-        return s
+        return max(0.0, s)

@@ -642,7 +642,8 @@ class TaskRunner:
             ctrl = self._neutral_ctrl
         else:
             return
-        if ctrl is None or MODE_STOP in ctrl.modes or self._guard:
+        # (a dimension can only be in MODE_STOP while stops are set: ``modes`` copies a list)
+        if ctrl is None or self._guard or (self._stops_set and MODE_STOP in ctrl.modes):
             return
         assert self.feasibility is not None
         s = self.feasibility.scale(out.acceleration, self._tick, joints)

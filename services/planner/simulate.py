@@ -154,7 +154,7 @@ def simulate_task(
     # The planner's own instance of the robot (the simulator's model data is the arm's).
     feasibility = None
     if joint_accel_fraction > 0.0:
-        feasibility = JointAccelerationScaling(section.robot_model(), joint_accel_fraction)
+        feasibility = JointAccelerationScaling(robot.with_own_data(), joint_accel_fraction)
     runner = TaskRunner(
         config.task, config.scene.positions(), models.models, models.profiles, models.demos, collision=policy,
         feasibility=feasibility,

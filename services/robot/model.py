@@ -17,7 +17,7 @@ mode, the obstacle monitor, the planner):
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib.metadata import PackageNotFoundError, distribution
 from pathlib import Path
 
@@ -191,6 +191,12 @@ class RobotModel:
 
     def __post_init__(self) -> None:
         self._zero_ddq = np.zeros(self.model.nv)  # the zero joint acceleration of update()
+
+    def with_own_data(self) -> RobotModel:
+        """The same robot with Pinocchio data of its own (the model is shared, read-only): for a
+        second user of the robot in one process, e.g. the planner's kinematics beside the arm
+        simulation's in an in-process run."""
+        return replace(self, data=self.model.createData())
 
     def collision_geometry(self, package_dirs: Sequence[str | Path] | None = None) -> pin.GeometryModel:
         """The URDF's collision geometry, reduced like :attr:`model` (see :meth:`geometry`)."""

@@ -149,3 +149,15 @@ def test_protocol_imports_neither_pinocchio_nor_the_arm() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_a_robot_with_own_data_shares_the_model_not_the_state() -> None:
+    robot = RobotModel.load()
+    other = robot.with_own_data()
+    assert other.model is robot.model and other.data is not robot.data
+    q0, q1 = robot.resolve_pose("ready"), robot.resolve_pose("home")
+    robot.update(q0, np.zeros(robot.n))
+    J0 = robot.jacobian().copy()
+    other.update(q1, np.zeros(robot.n))
+    assert np.array_equal(robot.jacobian(), J0)  # untouched by the other's update
+    assert not np.allclose(other.jacobian(), J0)
