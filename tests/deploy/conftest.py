@@ -35,13 +35,22 @@ def _run(cmd: list[str], timeout_s: float, **kw: object) -> subprocess.Completed
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s, check=False, **kw)  # type: ignore[call-overload]
 
 
-def compose_command() -> list[str] | None:
-    """``docker compose`` (v2) if the plugin is there, else ``docker-compose`` (1.29)."""
-    if shutil.which("docker") and _run(["docker", "compose", "version"], 30).returncode == 0:
-        return ["docker", "compose"]
-    if shutil.which("docker-compose"):
-        return ["docker-compose"]
-    return None
+#: The compose implementations the stack must work with, by name: the ``docker compose`` v2
+#: plugin and the ``docker-compose`` 1.29 that Debian 12 ships (``docker/install-compose-v2.sh``
+#: installs the plugin beside it).
+COMPOSE_VERSIONS = {"v2": (["docker", "compose"], "2."), "1.29": (["docker-compose"], "1.29")}
+
+
+def compose_commands() -> dict[str, list[str]]:
+    """The implementations of :data:`COMPOSE_VERSIONS` installed here, by name, v2 first."""
+    found = {}
+    for name, (cmd, version) in COMPOSE_VERSIONS.items():
+        if not shutil.which(cmd[0]):
+            continue
+        res = _run([*cmd, "version", "--short"], 30)
+        if res.returncode == 0 and res.stdout.strip().lstrip("v").startswith(version):
+            found[name] = cmd
+    return found
 
 
 def _unavailable(reason: str) -> None:
@@ -60,8 +69,10 @@ def free_port() -> int:
 class Engine:
     """The compose command and the environment every project of the session uses."""
 
-    compose: list[str]
+    compose: list[str]  # v2 when installed, else 1.29
     env: dict[str, str]
+    #: Every implementation installed (:func:`compose_commands`).
+    composes: dict[str, list[str]] = field(default_factory=dict)
 
 
 REALTIME_FILE = "compose.realtime.yaml"
@@ -88,10 +99,10 @@ def engine(tmp_path_factory: pytest.TempPathFactory) -> Engine:
         _unavailable("no docker client")
     if _run(["docker", "info", "--format", "{{.ServerVersion}}"], 60).returncode != 0:
         _unavailable("no Docker engine running")
-    compose = compose_command()
-    if compose is None:
-        _unavailable("neither `docker compose` nor `docker-compose`")
-    assert compose is not None
+    composes = compose_commands()
+    if not composes:
+        _unavailable("neither `docker compose` v2 nor `docker-compose` 1.29")
+    compose = next(iter(composes.values()))
     env = dict(os.environ)
     env["PSM_IMAGE_TAG"] = IMAGE_TAG
     # The credentials of every role, readable by the containers' user alone.
@@ -108,7 +119,7 @@ def engine(tmp_path_factory: pytest.TempPathFactory) -> Engine:
                  1200, env=env, cwd=DOCKER_DIR)
     assert build.returncode == 0, f"image build failed:\n{build.stdout[-3000:]}\n{build.stderr[-3000:]}"
     print(f"image built in {time.monotonic() - t0:.1f} s")
-    return Engine(compose, env)
+    return Engine(compose, env, composes)
 
 
 @dataclass
@@ -119,16 +130,18 @@ class Project:
     name: str
     files: list[str]
     env: dict[str, str] = field(default_factory=dict)
+    compose: list[str] | None = None  # None: the engine's
 
     def cmd(self, *args: str, timeout_s: float = 300.0) -> subprocess.CompletedProcess[str]:
-        argv = [*self.engine.compose, "-p", self.name]
+        argv = [*(self.compose or self.engine.compose), "-p", self.name]
         for f in self.files:
             argv += ["-f", str(DOCKER_DIR / f)]
         return _run([*argv, *args], timeout_s, env={**self.engine.env, **self.env}, cwd=DOCKER_DIR)
 
     def container(self, service: str) -> str:
-        """The container id of ``service``."""
-        out = self.cmd("ps", "-q", service, timeout_s=60).stdout.split()
+        """The container id of ``service``, running or exited (v2 lists only running ones
+        without ``-a``)."""
+        out = self.cmd("ps", "-a", "-q", service, timeout_s=60).stdout.split()
         assert out, f"no container for {service} in {self.name}"
         return out[0]
 
@@ -191,10 +204,18 @@ def project_factory(engine: Engine, tmp_path: Path) -> Iterator[object]:
     """Make projects; every one made is taken down with ``down -v`` at the end."""
     made: list[Project] = []
 
-    def make(name: str, files: list[str], env: dict[str, str] | None = None) -> Project:
+    def make(name: str, files: list[str], env: dict[str, str] | None = None,
+             compose: str | None = None) -> Project:
+        """``compose``: the implementation to run it with (a :data:`COMPOSE_VERSIONS` name;
+        None: the engine's). One that is not installed skips the test, or fails it in CI."""
         if "compose.yaml" in files:
             files = [*files, LOCKSTEP_FILE]
-        p = Project(engine, f"{name}{os.getpid()}", files, dict(env or {}))
+        command = None
+        if compose is not None:
+            if compose not in engine.composes:
+                _unavailable(f"compose {compose} is not installed (docker/install-compose-v2.sh)")
+            command = engine.composes[compose]
+        p = Project(engine, f"{name}{os.getpid()}", files, dict(env or {}), command)
         made.append(p)
         return p
 

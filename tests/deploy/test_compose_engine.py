@@ -1,8 +1,8 @@
 """The stack under docker compose on a real engine, from the committed compose files.
 
-- One host: build, ``up``, every healthcheck healthy, the feeding task runs to completion
-  (the planner exits 0), the recorder's MCAP on the host volume holds every expected topic,
-  ``down -v``.
+- One host, with ``docker compose`` v2 and with ``docker-compose`` 1.29: build, ``up``, every
+  healthcheck healthy, the feeding task runs to completion (the planner exits 0), the
+  recorder's MCAP on the host volume holds every expected topic, ``down -v``.
 - Two hosts: the camera and the goal tracker as a second project on a network of their own that
   reaches the arm's host only through the router's published port; the camera host is cut off
   (``docker network disconnect``): the person's goal goes lost and the planner holds; connected
@@ -24,7 +24,7 @@ import pytest
 
 from services.bus.messages import Keys
 from services.stack import load_stack
-from tests.deploy.conftest import ROOT, free_port, host_dir
+from tests.deploy.conftest import COMPOSE_VERSIONS, ROOT, free_port, host_dir
 from tests.stack_helpers import record_fault
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(900)]
@@ -142,12 +142,16 @@ def test_the_control_loop_can_run_at_sched_fifo_in_a_container(engine: Any) -> N
     assert not why, f"containers cannot run SCHED_FIFO ({why}): start dockerd with --cpu-rt-runtime"
 
 
-def test_the_feeding_task_runs_to_completion_under_compose(project_factory: Any, tmp_path: Path) -> None:
+@pytest.mark.parametrize("compose", list(COMPOSE_VERSIONS))
+def test_the_feeding_task_runs_to_completion_under_compose(
+    project_factory: Any, tmp_path: Path, compose: str
+) -> None:
+    """The one-host stack with each compose implementation (v2 and 1.29 both required in CI)."""
     data = host_dir(tmp_path / "data")
     port = free_port()
     project = project_factory("psmone", ["compose.yaml"], {
         "PSM_DATA_DIR": str(data), "PSM_ROUTER_PORT": str(port),
-    })
+    }, compose=compose)
     t0 = time.monotonic()
     up = project.cmd("up", "-d", timeout_s=400)
     assert up.returncode == 0, up.stderr[-3000:]
@@ -167,8 +171,9 @@ def test_the_feeding_task_runs_to_completion_under_compose(project_factory: Any,
     counts = recorded_topics(data / "recording.mcap")
     missing = sorted(expected_topics() - {t for t, n in counts.items() if n > 0})
     assert not missing, f"not recorded: {missing}; recorded: {sorted(counts)}"
-    save("one_host", {"up_to_healthy_s": round(healthy_s, 1), "up_to_task_done_s": round(task_s, 1),
-                      "messages": sum(counts.values()), "topics": len(counts), **loop})
+    save(f"one_host_compose_{compose}", {
+        "up_to_healthy_s": round(healthy_s, 1), "up_to_task_done_s": round(task_s, 1),
+        "messages": sum(counts.values()), "topics": len(counts), **loop})
 
 
 def test_a_camera_host_cut_off_holds_the_task_and_it_resumes(project_factory: Any, tmp_path: Path) -> None:

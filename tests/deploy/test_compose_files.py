@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import shutil
+import os
 import subprocess
 from pathlib import Path
 from typing import Any
@@ -14,7 +14,7 @@ from services.bus.acl import ROLE_NAMES
 from services.bus.config import ConfigError
 from services.compose import compose_files, write_compose
 from services.stack import config_class, load_stack
-from tests.deploy.conftest import DOCKER_DIR, ROOT
+from tests.deploy.conftest import COMPOSE_VERSIONS, DOCKER_DIR, ROOT, compose_commands
 
 STACK = load_stack(ROOT / "configs" / "stack.toml")
 
@@ -105,7 +105,10 @@ def test_a_stack_without_a_router_is_a_config_error() -> None:
         compose_files(stack)
 
 
-@pytest.mark.skipif(shutil.which("docker-compose") is None, reason="docker-compose 1.29 not installed")
+_INSTALLED = compose_commands()
+
+
+@pytest.mark.parametrize("compose", list(COMPOSE_VERSIONS))
 @pytest.mark.parametrize("files", [
     ["compose.yaml"],
     ["compose.yaml", "compose.remote-camera.yaml"],
@@ -117,8 +120,14 @@ def test_a_stack_without_a_router_is_a_config_error() -> None:
     ["compose.yaml", "compose.remote-camera.yaml", "compose.lockstep.yaml"],
     ["compose.camera-host.yaml"],
 ])
-def test_docker_compose_1_29_accepts_the_files(files: list[str]) -> None:
-    argv = ["docker-compose"]
+def test_compose_accepts_the_files(files: list[str], compose: str) -> None:
+    """``config -q`` of docker compose v2 and of docker-compose 1.29 accepts every combination
+    of the files the docs give (without an engine)."""
+    if compose not in _INSTALLED:
+        if os.environ.get("PSM_REQUIRE_DOCKER") == "1":
+            pytest.fail(f"PSM_REQUIRE_DOCKER=1 but compose {compose} is not installed")
+        pytest.skip(f"compose {compose} not installed (docker/install-compose-v2.sh)")
+    argv = list(_INSTALLED[compose])
     for f in files:
         argv += ["-f", str(DOCKER_DIR / f)]
     env = {"PATH": "/usr/bin:/bin", "PSM_ROUTER_HOST": "arm-host", "PSM_CAMERA_URL": "rtsp://cam/1"}
