@@ -373,20 +373,20 @@ def run(out_dir: Path, *, seed: int, quick: bool, progress: Progress) -> Experim
         "PSM's v_y at y = +0.10 m within 2 % of the demonstration's in every condition",
         "worst " + ("n/a" if psm["worst_strike"] is None else f"{100 * psm['worst_strike']:.1f} %"),
     )
-    ext = per["psm_ext"]
+    ext = per["psm_rest"]
     res.verdict(
-        "psm_ext_strike_2pct",
+        "psm_rest_strike_2pct",
         ext["struck_starts"] == ext["n_starts"] and ext["worst_strike_starts"] is not None
         and ext["worst_strike_starts"] <= 0.02,
-        "PSM-ext (velocity_extrema=True): v_y at y = +0.10 m within 2 % of the demonstration's "
+        "PSM-rest (rest_retime): v_y at y = +0.10 m within 2 % of the demonstration's "
         "from every start",
         f"{ext['struck_starts']}/{ext['n_starts']} starts strike, worst "
         + ("n/a" if ext["worst_strike_starts"] is None else f"{100 * ext['worst_strike_starts']:.1f} %"),
     )
     res.verdict(
-        "psm_ext_lands_all",
+        "psm_rest_lands_all",
         ext["landed"] == ext["n"],
-        "PSM-ext lands the cylinder in every condition (starts and holds)",
+        "PSM-rest lands the cylinder in every condition (starts and holds)",
         f"{ext['landed']}/{ext['n']}",
     )
     dmp_fail = [

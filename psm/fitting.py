@@ -80,6 +80,14 @@ RAW_VELOCITY_NOISE = 0.01
 #: The noise of the unsmoothed samples at a task via-point is estimated from the samples within
 #: this many of it on either side.
 RAW_NOISE_SAMPLES = 256
+#: A velocity extremum keeps the unsmoothed demonstration's velocity where the smoothed speed is
+#: at least this fraction of the demonstration's top speed (a stroke's peak, which the smoothing
+#: rounds off), and the smoothed velocity elsewhere: at the slow extrema (the dips between
+#: strokes, a slow guided phase) the unsmoothed velocity of a hand-guided recording is mostly
+#: the hand's tremor (±0.02 m/s at 8-12 Hz on the committed recordings, a third of a 0.06 m/s
+#: guided speed), which the via-point would otherwise impose on the motion. A user's via-point
+#: always keeps the unsmoothed velocity.
+RAW_VELOCITY_MIN_SPEED = 0.7
 
 
 @dataclass(frozen=True)
@@ -602,6 +610,14 @@ class _Segmenter:
                 self._lines.pop((bounds[s], bounds[s + 1]), None)
                 self._slopes.pop((bounds[s], bounds[s + 1]), None)
 
+    def forget(self, samples: Sequence[int]) -> None:
+        """Forget the lines and slopes of every segment that starts or ends at one of ``samples``
+        (their ``v_knot`` changed)."""
+        gone = set(samples)
+        for cache in (self._lines, self._slopes):
+            for key in [k for k in cache if k[0] in gone or k[1] in gone]:
+                del cache[key]
+
     def _line(self, lo: int, hi: int) -> tuple[float, float, float, float, float, float, float]:
         """``(x_c, v_c, x_n, v_n, k_cap, k_ls, sse)`` of the segment: its :meth:`boundary`, the
         stability cap of its slope [1/s²] and the clamped least-squares line fit
@@ -790,6 +806,7 @@ def _auto_cuts(
     min_samples: int,
     min_delta: float,
     max_segments: int,
+    check: Sequence[set[tuple[int, int]]] | None = None,
 ) -> list[list[int]]:
     """The ``"auto"`` cuts of several dimensions (``cuts[g]`` of ``segmenters[g]``) at once.
 
@@ -798,10 +815,16 @@ def _auto_cuts(
     the numerical work is done level by level of the splitting tree: each round splits every
     segment the greedy order needs or may need next, in all dimensions, as one vectorised split
     search and one vectorised deviation check of all new halves. Splits computed ahead are wasted
-    only when ``max_segments`` stops the greedy order first.
+    only when ``max_segments`` stops the greedy order first. ``check`` (per dimension, optional):
+    the only segments of ``cuts`` whose deviation is checked; the others are taken as within
+    ``tolerance``.
     """
     greedy = [_Greedy(sorted(set(c)), tolerance, max_segments) for c in cuts]
     first = [(g, lo, hi) for g, gr in enumerate(greedy) for lo, hi in itertools.pairwise(gr.cuts)]
+    if check is not None:  # the other segments are accepted as they are
+        for g, lo, _ in first:
+            greedy[g].error[lo] = 0.0
+        first = [(g, lo, hi) for g, lo, hi in first if (lo, hi) in check[g]]
     errors = _errors([(segmenters[g], lo, hi) for g, lo, hi in first], tolerance)
     for (g, lo, _), err in zip(first, errors, strict=True):
         greedy[g].error[lo] = err
@@ -866,21 +889,46 @@ def task_via_points(
     kept on both sides of it (a dimension at rest there has no state to keep: the segment would
     have no length); a velocity extremum must also lie at least ``min_samples`` samples from
     them (a user's point is kept however close). ``x (T,)``. Returns the kept samples, sorted."""
+    return insert_task_via_points(sorted(cuts), set(), user, extrema, x, min_samples, min_delta)[1]
+
+
+def insert_task_via_points(
+    cuts: Sequence[int],
+    movable: set[int],
+    user: Sequence[int],
+    extrema: Sequence[int],
+    x: NDArray,
+    min_samples: int,
+    min_delta: float,
+) -> tuple[list[int], list[int]]:
+    """:func:`task_via_points` into a segmentation ``cuts`` of which the samples ``movable`` (the
+    ``"auto"`` segmentation's own cuts) give way: a movable cut closer to a candidate than the
+    candidate's spacing is replaced by it (a cut moved by less than ``min_samples`` samples).
+    Returns ``(cuts, added)``: the new cuts and the kept candidates, both sorted."""
     kept = sorted(cuts)
+    movable = set(movable)
     added: list[int] = []
     for group, spacing in ((user, 0), (extrema, min_samples)):
+        gap = max(spacing, 1)
         for c in group:
-            i = int(np.searchsorted(kept, c))
-            if i == 0 or i == len(kept) or kept[i] == c:
+            if c in movable:  # already a cut of the segmentation: it now keeps the state
+                movable.discard(c)
+                added.append(c)
                 continue
-            lo, hi = kept[i - 1], kept[i]
-            if c - lo < max(spacing, 1) or hi - c < max(spacing, 1):
+            trial = [k for k in kept if not (k in movable and abs(k - c) < gap)]
+            i = int(np.searchsorted(trial, c))
+            if i == 0 or i == len(trial) or trial[i] == c:
+                continue
+            lo, hi = trial[i - 1], trial[i]
+            if c - lo < gap or hi - c < gap:
                 continue
             if abs(x[c] - x[lo]) < min_delta or abs(x[hi] - x[c]) < min_delta:
                 continue
-            kept.insert(i, c)
+            trial.insert(i, c)
+            movable.difference_update(set(kept) - set(trial))
+            kept = trial
             added.append(c)
-    return sorted(added)
+    return kept, sorted(added)
 
 
 def _merge_short(cuts: list[int], fixed: set[int], x: NDArray, min_delta: float) -> list[int]:
@@ -936,6 +984,92 @@ def _chain(segmenter: _Segmenter, cuts: list[int]) -> DimensionFit:
     )
 
 
+def _keep_velocities(
+    v_knot: NDArray,
+    v: NDArray,
+    raw: RawDemo | None,
+    demo_t: NDArray,
+    task: Sequence[int],
+    d: int,
+    user: Sequence[int],
+) -> None:
+    """Give the task via-points ``task`` of dimension ``d`` their demonstrated velocity in
+    ``v_knot (T, D)``: that of ``raw`` (the unsmoothed demonstration; ``None``: the smoothed
+    ``v (T, D)`` everywhere) at the user's samples ``user`` and at the velocity extrema at least
+    :data:`RAW_VELOCITY_MIN_SPEED` of the top speed fast, the smoothed one at the others."""
+    if not task:
+        return
+    idx = list(task)
+    if raw is None:
+        v_knot[idx, d] = v[idx, d]
+        return
+    users = set(user)
+    top = RAW_VELOCITY_MIN_SPEED * raw.speed_scale
+    keep_raw = [i for i in idx if i in users or abs(v[i, d]) >= top]
+    v_knot[idx, d] = v[idx, d]
+    if keep_raw:
+        v_knot[keep_raw, d] = raw.velocity(demo_t[keep_raw], d)
+
+
+def _add_task_via_points(
+    cuts: dict[int, list[int]],
+    fixed: dict[int, set[int]],
+    user: Sequence[int],
+    extrema: dict[int, list[int]],
+    samples: _Samples,
+    segmenters: dict[int, _Segmenter],
+    v_knot: NDArray,
+    v: NDArray,
+    raw: RawDemo | None,
+    demo_t: NDArray,
+    tolerance: float,
+    min_samples: int,
+    min_delta: float,
+    max_segments: int,
+) -> list[list[int]]:
+    """The ``"auto"`` segmentation ``cuts`` (by dimension) with the task via-points added.
+
+    The task via-points join the segmentation found without them
+    (:func:`insert_task_via_points`: an automatic cut closer than the spacing to one moves onto
+    it), so the fit is at least as fine as without them: no segment is merged. The task
+    via-points then get their demonstrated velocities (:func:`_keep_velocities`), and a segment
+    next to one that those velocities push beyond ``tolerance`` is split further as
+    :func:`_auto_cuts` does (up to ``max_segments`` besides the task via-points); the segments
+    away from them keep the fit they had."""
+    T = samples.T
+    redo: dict[int, list[int]] = {}
+    near: list[set[tuple[int, int]]] = []  # per dimension redone: the segments next to a new one
+    added_most = 0
+    for d, c in cuts.items():
+        new, added = insert_task_via_points(
+            c, set(c) - fixed[d], user, extrema[d], segmenters[d].x, min_samples, min_delta
+        )
+        if not added:
+            continue
+        _keep_velocities(v_knot, v, raw, demo_t, added, d, user)
+        flat = [d * T + i for i in added]
+        samples.v_knot[flat] = v_knot[added, d]
+        samples.states[1, flat] = samples.v_knot[flat] ** 2
+        samples.states[2, flat] = np.abs(samples.v_knot[flat])
+        segmenters[d].forget(added)
+        redo[d] = new
+        task = set(added)
+        near.append({(lo, hi) for lo, hi in itertools.pairwise(new) if lo in task or hi in task})
+        added_most = max(added_most, len(added))
+    if redo:
+        again = _auto_cuts(
+            list(redo.values()),
+            [segmenters[d] for d in redo],
+            tolerance,
+            min_samples,
+            min_delta,
+            max_segments + added_most,
+            check=near,
+        )
+        cuts.update(zip(redo, again, strict=True))
+    return list(cuts.values())
+
+
 def fit_dimensions(
     demo_t: NDArray,
     x: NDArray,
@@ -987,26 +1121,27 @@ def fit_dimensions(
         if extremum_tolerance
         else np.zeros(D)
     )
+    auto = isinstance(segments, str)
+    if auto and segments != "auto":
+        raise ParameterError(f"segments must be 'auto', an int or cut times, got {segments!r}")
+    candidates: dict[int, list[int]] = {}  # the velocity extrema of each dimension
     for d in range(D):
         if not holds[d]:
             turns = turning_points(x[:, d], float(reversal_tolerance[d]))
             fixed[d] = {0, T - 1, *turns}
             v_knot[turns, d] = 0.0
-            extrema = velocity_extremum_points(v[:, d], float(extremum_tol[d]))
-            task = task_via_points(fixed[d], user, extrema, x[:, d], min_segment_samples, hold_tolerance)
-            if task:
+            candidates[d] = velocity_extremum_points(v[:, d], float(extremum_tol[d]))
+            if not auto:  # "auto" adds them to its own segmentation, below
+                task = task_via_points(
+                    fixed[d], user, candidates[d], x[:, d], min_segment_samples, hold_tolerance
+                )
                 fixed[d].update(task)
-                if raw is None:
-                    v_knot[task, d] = v[task, d]
-                else:
-                    v_knot[task, d] = raw.velocity(demo_t[task], d)
+                _keep_velocities(v_knot, v, raw, demo_t, task, d, user)
     if not fixed:  # nothing moves (segments is not even looked at, as for one hold dimension)
         return [_hold(x[:, d], duration) for d in range(D)]
     samples = _Samples(demo_t, x, v_knot, a, dt, min_speed_ratio)
     segmenters = {d: _Segmenter(samples, d, min_speed_ratio, k_fit) for d in fixed}
-    if isinstance(segments, str):
-        if segments != "auto":
-            raise ParameterError(f"segments must be 'auto', an int or cut times, got {segments!r}")
+    if auto:
         cuts = [_merge_short(sorted(fixed[d]), fixed[d], x[:, d], hold_tolerance) for d in fixed]
         cuts = _auto_cuts(
             cuts,
@@ -1016,6 +1151,11 @@ def fit_dimensions(
             hold_tolerance,
             max_segments,
         )
+        if user or any(candidates.values()):
+            cuts = _add_task_via_points(
+                dict(zip(fixed, cuts, strict=True)), fixed, user, candidates, samples, segmenters,
+                v_knot, v, raw, demo_t, auto_tolerance, min_segment_samples, hold_tolerance, max_segments,
+            )
     else:
         if isinstance(segments, int | np.integer):
             if segments < 1:

@@ -44,6 +44,11 @@ FORMAT_NAME = "psm-model"
 FORMAT_VERSION = 2
 #: The versions :meth:`PhaseSpaceModel.from_dict` reads.
 READABLE_VERSIONS = (1, 2)
+#: Revision of what :meth:`PhaseSpaceModel.fit` learns from given samples and options; bump it
+#: with any change of the fit's result (a cache of learned models keyed on the samples and the
+#: options must include it). 2: the velocity extrema join the automatic segmentation, on by
+#: default.
+FIT_REVISION = 2
 
 GoalFn = Callable[[float], ArrayLike]
 Disturbance = Callable[[float, NDArray[np.float64], NDArray[np.float64]], tuple[ArrayLike, ArrayLike]]
@@ -193,7 +198,7 @@ class PhaseSpaceModel:
         velocity_tolerance: float = 1e-3,
         k_fit: str = "duration",
         max_acceleration: float | ArrayLike | None = None,
-        velocity_extrema: bool = False,
+        velocity_extrema: bool = True,
         via_point_times: Sequence[float] | None = None,
     ) -> PhaseSpaceModel:
         """Learn a model from ONE demonstration.
@@ -213,14 +218,18 @@ class PhaseSpaceModel:
         ``sync_gain``, ``sync_mode``, ``sync_time``, ``start_retime`` and ``start_shift`` are the
         controller's defaults, stored with the model (see :class:`ModelParameters`; ``sync_mode``
         ``"brake"`` is the paper's eq. 14).
-        ``velocity_extrema``: keep each dimension's significant velocity extrema (speed peaks
-        and dips from which the velocity swings back by 20 % of the demonstration's top speed,
-        :func:`psm.fitting.velocity_extremum_points`) as via-points;
+        ``velocity_extrema`` (default on): keep each dimension's significant velocity extrema
+        (speed peaks and dips from which the velocity swings back by 20 % of the
+        demonstration's top speed, :func:`psm.fitting.velocity_extremum_points`) as via-points;
+        in ``"auto"`` mode they join the segmentation found without them (its cuts are kept,
+        ``max_segments`` caps that segmentation and the task via-points come in addition);
         ``via_point_times``: demonstration times [s] from its first sample, strictly inside the
         demonstration, of via-points every moving dimension must keep (task points: where a
-        tool must touch, strike or release). Both keep the velocity of the unsmoothed
-        demonstration there (:meth:`psm.fitting.RawDemo.velocity`), so that the motion passes
-        those positions at the demonstrated velocities (docs/psm.md, "Via-points").
+        tool must touch, strike or release). A user's via-point and a fast extremum (at least
+        :data:`psm.fitting.RAW_VELOCITY_MIN_SPEED` of the top speed) keep the velocity of the
+        unsmoothed demonstration there (:meth:`psm.fitting.RawDemo.velocity`), so that the
+        motion passes those positions at the demonstrated velocities; a slower extremum keeps
+        the smoothed one (docs/psm.md, "Via-points").
         Raises :class:`psm.PSMError` subclasses on invalid input.
         """
         t_arr, X_arr = validate_demonstration(t, X)

@@ -199,7 +199,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
             ("auto_tolerance", args.auto_tolerance),
             ("sync_mode", args.sync),
             ("start_shift", args.start_shift or None),
-            ("velocity_extrema", args.velocity_extrema or None),
+            ("velocity_extrema", args.velocity_extrema),
             ("via_point_times", args.via_points),
         )
         if value is not None
@@ -323,8 +323,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="spread a start offset over the motion (fading to 0 at the goal)")
     p.add_argument("--via-points", type=_times_arg, metavar="T1,T2,..",
                    help="demonstration times [s] of via-points to keep with the demonstrated velocity")
-    p.add_argument("--velocity-extrema", action="store_true",
-                   help="keep the demonstration's speed peaks and dips as via-points")
+    p.add_argument("--velocity-extrema", action=argparse.BooleanOptionalAction, default=None,
+                   help="keep the demonstration's speed peaks and dips as via-points "
+                        "(default: on; --no-velocity-extrema: the segmentation alone)")
     p.add_argument("--columns", nargs="+", help="CSV columns to learn (default: all but t)")
     p.add_argument("--topic", help="MCAP: arm-state topic (default <prefix>/arm/state)")
     p.add_argument("--plot", help="also write a reproduction plot (PNG)")

@@ -11,8 +11,11 @@ services do small operations at a high rate, so they run these libraries single-
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import os
+from collections.abc import Iterator
+from typing import Any
 
 #: Setter symbols of the OpenBLAS builds in use (plain, numpy's ILP64 and scipy's prefixed ones).
 _OPENBLAS_SETTERS = (
@@ -53,6 +56,36 @@ def limit_blas_threads(n: int = 1) -> list[str]:
                 changed.append(path)
                 break
     return changed
+
+
+#: Getter symbols matching :data:`_OPENBLAS_SETTERS`.
+_OPENBLAS_GETTERS = tuple(name.replace("_set_", "_get_") for name in _OPENBLAS_SETTERS)
+
+
+@contextlib.contextmanager
+def blas_threads(n: int = 1) -> Iterator[None]:
+    """Run the block with every OpenBLAS loaded so far at ``n`` threads, then restore each one's
+    count. A computation that must round as a service's does (the services run BLAS on one
+    thread: :func:`limit_blas_threads`) runs in it: OpenBLAS's threaded kernels sum in another
+    order, so even small products can differ in the last bit."""
+    previous: list[tuple[Any, int]] = []
+    for path in _loaded_libraries("openblas"):
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for get_name, set_name in zip(_OPENBLAS_GETTERS, _OPENBLAS_SETTERS, strict=True):
+            getter, setter = getattr(lib, get_name, None), getattr(lib, set_name, None)
+            if getter is not None and setter is not None:
+                getter.restype, setter.argtypes, setter.restype = ctypes.c_int, [ctypes.c_int], None
+                previous.append((setter, int(getter())))
+                setter(int(n))
+                break
+    try:
+        yield
+    finally:
+        for setter, count in previous:
+            setter(count)
 
 
 def limit_opencv_threads(n: int = 1) -> None:

@@ -32,7 +32,7 @@ import numpy as np
 
 from psm import PhaseSpaceModel
 from psm.errors import PSMError
-from psm.model import FORMAT_VERSION
+from psm.model import FIT_REVISION, FORMAT_VERSION
 
 __all__ = [
     "DEMOS_DIR", "ModelCache", "ModelSource", "TaskModels", "cache_key", "demo_path", "load_models",
@@ -62,9 +62,10 @@ class ModelSource:
 
 def cache_key(t: np.ndarray, X: np.ndarray, options: Mapping[str, Any]) -> str:
     """SHA-256 (hex) of the demonstration's samples ``t (T,) [s]``, ``X (T, D)``, the fit
-    options (as sorted JSON) and the model format version."""
+    options (as sorted JSON), the model format version and the fit's revision (a library whose
+    fit learns differently does not reuse the models of another)."""
     h = hashlib.sha256()
-    h.update(f"psm-model-v{FORMAT_VERSION}\0".encode())
+    h.update(f"psm-model-v{FORMAT_VERSION}-fit{FIT_REVISION}\0".encode())
     for a in (t, X):
         arr = np.ascontiguousarray(a, dtype=np.float64)
         h.update(repr(arr.shape).encode())

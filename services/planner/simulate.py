@@ -121,7 +121,8 @@ def simulate_task(
     joint_accel_fraction: float | None = None,
 ) -> SimulationResult:
     """Run ``config`` (a :class:`~services.tasks.feeding.FeedingConfig`: scene + task) to its end
-    (done or aborted) or ``max_s`` of sim time.
+    (done or aborted) or ``max_s`` of sim time. Linear algebra runs on one BLAS thread, as in the
+    services (:func:`services.threads.blas_threads`), so that the run rounds as the stack does.
 
     Args:
         models: from :func:`services.planner.models.load_task_models`.
@@ -139,6 +140,32 @@ def simulate_task(
         joint_accel_fraction: the planner's ``joint_accel_fraction`` (None: its default; 0: the
             commands are not scaled into the joint limits).
     """
+    from services.threads import blas_threads
+
+    with blas_threads(1):
+        return _simulate_task(
+            config, models, goals=goals, goal_rate_hz=goal_rate_hz, goal_updates=goal_updates,
+            start_pose=start_pose, dt_s=dt_s, max_s=max_s, arm=arm, collision=collision,
+            prediction_max_age_s=prediction_max_age_s, joint_accel_fraction=joint_accel_fraction,
+        )
+
+
+def _simulate_task(
+    config: Any,
+    models: TaskModels,
+    *,
+    goals: LiveGoalFn | None,
+    goal_rate_hz: float,
+    goal_updates: Sequence[GoalUpdate],
+    start_pose: str | list[float],
+    dt_s: float,
+    max_s: float,
+    arm: Mapping[str, Any] | None,
+    collision: CollisionFn | None,
+    prediction_max_age_s: float,
+    joint_accel_fraction: float | None,
+) -> SimulationResult:
+    """:func:`simulate_task` (its arguments, all given)."""
     from services.arm.config import ArmSection
     from services.arm.sim import ArmSim
     from services.planner.config import PlannerSection

@@ -52,6 +52,12 @@ def test_learn_from_npz_with_uniform_segments(tmp_path: Path, reach_demo) -> Non
     assert r.returncode == 0, r.stderr
     fine = json.loads((tmp_path / "m2.json").read_text())
     assert fine["parameters"]["auto_tolerance"] == 0.001 and fine["parameters"]["sync_mode"] == "scale"
+    assert fine["parameters"]["velocity_extrema"] is True  # the default
+    r = run_psm("learn", str(tmp_path / "demo.npz"), "-o", str(tmp_path / "m3.json"), "--segments", "5",
+                "--no-velocity-extrema")
+    assert r.returncode == 0, r.stderr
+    plain = json.loads((tmp_path / "m3.json").read_text())
+    assert plain["parameters"]["velocity_extrema"] is False and len(plain["dimensions"][0]["k"]) == 5
     r = run_psm("learn", str(tmp_path / "demo.npz"), "--auto-tolerance", "-1")
     assert r.returncode == 2 and r.stderr.count("\n") == 1 and "auto_tolerance" in r.stderr
 

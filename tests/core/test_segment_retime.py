@@ -81,10 +81,12 @@ def test_an_entry_away_from_the_via_point_state_keeps_the_learned_slope(x: float
 
 
 def test_velocity_extrema_reproduce_back_to_neutral_on_time() -> None:
-    """The committed back_to_neutral recording learned with its velocity extrema: without the
-    retiming, one dimension entered a long deceleration a tick short of its via-point, its time
-    to go jumped by ~70 ms, the synchronisation slowed the others and they missed their next
-    via-points' speeds (3.67 s for the 3.50 s demonstration, RMSE 5.2 mm)."""
+    """The committed back_to_neutral recording learned with its velocity extrema runs on time and
+    better with the retiming than without (measured: 0.68 against 0.89 mm RMSE, 3.50 against
+    3.52 s). With the extrema as fixed cuts of the greedy segmentation (before they joined the
+    plain one), one dimension entered a long deceleration a tick short of its via-point without
+    the retiming, its time to go jumped by ~70 ms, the synchronisation slowed the others and
+    they missed their next via-points' speeds (3.67 s for the 3.50 s demonstration, 5.2 mm)."""
     from benchmarks.metrics import trajectory_metrics
     from services.learn_cli import load_demonstration
 
@@ -96,4 +98,4 @@ def test_velocity_extrema_reproduce_back_to_neutral_on_time() -> None:
     rmse = {flag: trajectory_metrics(r.t, 1e3 * r.x, t, 1e3 * X)["rmse"] for flag, r in runs.items()}
     assert runs[True].done and math.isclose(runs[True].t[-1], t[-1], abs_tol=0.02), runs[True].t[-1]
     assert rmse[True] < 1.0, rmse
-    assert runs[False].t[-1] > t[-1] + 0.1 and rmse[False] > 3.0, (runs[False].t[-1], rmse)
+    assert rmse[True] < rmse[False], rmse

@@ -52,7 +52,7 @@ def test_smoothing_rounds_the_pulse_off_but_the_via_point_keeps_the_raw_peak() -
 
 def test_without_velocity_extrema_the_peak_is_the_smoothed_one_or_none() -> None:
     t, x = _pulse_demo()
-    model = PhaseSpaceModel.fit(t, x, segments=1)  # the default: velocity_extrema=False
+    model = PhaseSpaceModel.fit(t, x, segments=1, velocity_extrema=False)
     assert len(model.k[0]) == 1  # rest to rest: no via-point inside
     r = model.rollout(dt=0.002)
     assert _speed_at(r.x[:, 0], r.v[:, 0], x[-1] / 2) < 0.96 * PULSE_V

@@ -18,8 +18,9 @@ def reach() -> tuple[np.ndarray, np.ndarray, PhaseSpaceModel]:
     s = t / 2.0
     s = 10 * s**3 - 15 * s**4 + 6 * s**5
     X = np.stack([0.4 * s, 0.2 * np.sin(np.pi * s)], axis=1)
-    # No acceleration limit: the controller then runs each learned k unchanged.
-    return t, X, PhaseSpaceModel.fit(t, X, segments=3, max_acceleration=np.inf)
+    # No acceleration limit: the controller then runs each learned k unchanged. Three uniform
+    # segments exactly (no velocity-extremum via-point added to them).
+    return t, X, PhaseSpaceModel.fit(t, X, segments=3, max_acceleration=np.inf, velocity_extrema=False)
 
 
 def test_pstf_lines_are_the_model_segments(reach) -> None:

@@ -29,7 +29,7 @@ def test_a_learned_model_is_cached_by_content(tmp_path: Path, monkeypatch: pytes
     assert again.to_dict() == first.to_dict()
 
 
-def test_other_options_or_samples_learn_anew(tmp_path: Path) -> None:
+def test_other_options_or_samples_learn_anew(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     t = np.linspace(0.0, 1.0, 501)
     X = np.column_stack([0.1 * (3 * t**2 - 2 * t**3), 0.05 * t])
     cache = ModelCache(tmp_path)
@@ -44,6 +44,12 @@ def test_other_options_or_samples_learn_anew(tmp_path: Path) -> None:
     assert cache_key(t, X, {"smoothing": 0.01}) == cache_key(t.copy(), X.copy(), {"smoothing": 0.01})
     assert cache.get_or_fit("reach", t, X, {}).to_dict() == a.to_dict()
     assert cache.hits == 1
+    # a library whose fit learns differently does not reuse another's models
+    import services.planner.models as models
+
+    key = cache_key(t, X, {})
+    monkeypatch.setattr(models, "FIT_REVISION", models.FIT_REVISION + 1)
+    assert cache_key(t, X, {}) != key
 
 
 def test_a_damaged_cache_file_is_learned_again(tmp_path: Path) -> None:
