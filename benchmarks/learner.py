@@ -69,8 +69,8 @@ FloatArray = NDArray[np.float64]
 #: ``psm_precise``: ``auto_tolerance`` 2e-4 with up to 64 segments per dimension and 2 ms smoothing
 #: (LASA is noise-free; the 20 ms default alone moves the path about as far from demo 0 as
 #: DMP-50's whole error): what it takes for the PSM's path to match DMP-50's; ``psm_noext``:
-#: defaults without the velocity-extremum via-points (``velocity_extrema=False``, the library's
-#: default before they joined the segmentation: the before/after of that change). ``psm_budget``
+#: the library's defaults before 2026-12-03 (``velocity_extrema=False``, the controller's
+#: ``rest_retime=False``): the before/after of that change. ``psm_budget``
 #: also leaves them out: its cap counts every segment.
 PSM_VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "psm": ({}, {}),
@@ -80,7 +80,7 @@ PSM_VARIANTS: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
     "psm_budget": ({"auto_tolerance": 1e-3, "max_segments": 12, "velocity_extrema": False}, {}),
     "psm_fine": ({"auto_tolerance": 1e-3, "max_segments": 32}, {}),
     "psm_precise": ({"auto_tolerance": 2e-4, "max_segments": 64, "smoothing": 0.002}, {}),
-    "psm_noext": ({"velocity_extrema": False}, {}),
+    "psm_noext": ({"velocity_extrema": False}, {"rest_retime": False}),
 }
 PSM_NUMBERS_PER_SEGMENT = 4
 #: Methods of the per-shape tables (the other PSM configurations get a table of their own).
@@ -840,7 +840,10 @@ STRIKE_START_OFFSETS: tuple[tuple[float, float, float], ...] = (
 #: via-points) within this fraction of the demonstrated one.
 STRIKE_TARGET_FRACTION = 0.02
 #: Learners of the strike and recordings sections: PSM configurations (fit options) and DMPs.
-ARM_PSM: dict[str, dict[str, Any]] = {"psm": {}, "psm_noext": {"velocity_extrema": False}}
+ARM_PSM: dict[str, tuple[dict[str, Any], dict[str, Any]]] = {
+    "psm": ({}, {}),
+    "psm_noext": PSM_VARIANTS["psm_noext"],
+}
 ARM_METHODS: tuple[str, ...] = (*ARM_PSM, "dmp10", "dmp50")
 
 
@@ -876,11 +879,13 @@ def _arm_learners(t: FloatArray, X: FloatArray, dt: float) -> dict[str, Callable
 
     demo = Demo(t=t, x=X)
     learners: dict[str, Callable[[FloatArray], Run]] = {}
-    for name, options in ARM_PSM.items():
+    for name, (options, run_options) in ARM_PSM.items():
         model = PhaseSpaceModel.fit(t, X, **options)
 
-        def run_p(x0: FloatArray, model: Any = model) -> Run:
-            r = model.rollout(x0, dt=dt, max_duration=PSM_MAX_DURATION_FACTOR * demo.duration)
+        def run_p(x0: FloatArray, model: Any = model, run_options: dict[str, Any] = run_options) -> Run:
+            r = model.rollout(
+                x0, dt=dt, max_duration=PSM_MAX_DURATION_FACTOR * demo.duration, **run_options
+            )
             return Run(t=r.t, x=r.x, done=bool(r.done), wall_s=0.0, v=r.v)
 
         learners[name] = run_p
@@ -964,7 +969,7 @@ def recordings_benchmark(log: Callable[[str], None], quick: bool) -> dict[str, A
             run = run_fn(X[0])
             metrics = trajectory_metrics(run.t, 1e3 * run.x, t, 1e3 * X)
             entry["methods"][method] = {**metrics, "done": run.done}
-        for method, options in ARM_PSM.items():
+        for method, (options, _) in ARM_PSM.items():
             entry["methods"][method]["segments_per_dim"] = [
                 len(k) for k in PhaseSpaceModel.fit(t, X, **options).k
             ]
@@ -1021,9 +1026,9 @@ from demo 0's time stamps (`t[1] - t[0]`, 2.5–8 ms depending on the shape).
   size; *PSM-precise* = `auto_tolerance=2e-4, max_segments=64, smoothing=0.002`: what it takes
   for the PSM's path to match DMP-50's (LASA is noise-free, and the default 20 ms smoothing alone
   moves the path about as far from demo 0 as DMP-50's whole error: median DTW 0.010 mm);
-  *PSM-no-ext* = defaults with `velocity_extrema=False`: without the velocity-extremum
-  via-points (the defaults before they joined the segmentation; *PSM-≤50* also leaves them out,
-  as its cap counts every segment). The
+  *PSM-no-ext* = the defaults before 2026-12-03: `velocity_extrema=False` (without the
+  velocity-extremum via-points; *PSM-≤50* also leaves them out, as its cap counts every segment)
+  and the controller's `rest_retime=False`. The
   *Model size* table gives the segment counts actually used.
 - *DMP*: `movement_primitives` 0.9.1 `DMP(n_dims=2, execution_time=demo duration, dt=dt,
   n_weights_per_dim=10 or 50)` with the library's default gains (α_y = 25, β_y = 6.25, no

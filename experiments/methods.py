@@ -12,10 +12,11 @@ PSM rollout's ``disturbance`` does: ``disturbance(t, x, v) -> (x, v)`` before ea
 
 Methods (:data:`METHODS`):
 
-* ``psm`` -- ``PhaseSpaceModel.fit(t, X)`` defaults (each dimension's speed peaks and dips kept
-  as via-points);
-* ``psm_rest`` -- the same model run with the controller's ``rest_retime`` (a dimension brought
-  to rest inside a segment goes on at its nominal pace);
+* ``psm`` -- ``PhaseSpaceModel.fit(t, X)`` and ``rollout`` defaults (each dimension's speed
+  peaks and dips kept as via-points; a dimension brought to rest inside a segment goes on at its
+  nominal pace);
+* ``psm_before`` -- the defaults before 2026-12-03: ``velocity_extrema=False`` and the
+  controller's ``rest_retime=False`` (the before/after of that change);
 * ``dmp10`` / ``dmp50`` -- ``movement_primitives.dmp.DMP`` with 10 / 50 weights per dimension;
 * ``dmp50_scaled`` -- DMP-50 with its forcing term scaled per dimension by
   ``(g - x₀) / (g_demo - x₀_demo)``, the amplitude scaling of the original DMP formulation
@@ -79,7 +80,7 @@ METHODS: dict[str, Method] = {
     m.key: m
     for m in (
         Method("psm", "PSM", "tab:blue"),
-        Method("psm_rest", "PSM-rest", "tab:cyan"),
+        Method("psm_before", "PSM-before", "tab:cyan"),
         Method("dmp10", "DMP-10", "tab:orange"),
         Method("dmp50", "DMP-50", "tab:red"),
         Method("dmp50_scaled", "DMP-50 f·(g−x₀)", "tab:brown"),
@@ -88,7 +89,7 @@ METHODS: dict[str, Method] = {
     )
 }
 #: The PSM methods of :data:`METHODS` (rolled out by ``PhaseSpaceModel.rollout``).
-PSM_KEYS = ("psm", "psm_rest")
+PSM_KEYS = ("psm", "psm_before")
 DMP_FV_WEIGHTS = 50
 #: A demonstrated dimension moving less than this [unit] (or 1 % of the largest range) is not
 #: amplitude-scaled by ``dmp50_scaled``.
@@ -116,8 +117,10 @@ class _Fitted:
 
 def fit_method(key: str, demo: Demo) -> _Fitted:
     """Fit method ``key`` of :data:`METHODS` on ``demo``."""
-    if key in PSM_KEYS:
+    if key == "psm":
         return _Fitted(key, fit_psm(demo), demo, {})
+    if key == "psm_before":
+        return _Fitted(key, fit_psm(demo, velocity_extrema=False), demo, {})
     if key in ("dmp10", "dmp50", "dmp50_scaled"):
         return _Fitted(key, fit_dmp(demo, 10 if key == "dmp10" else 50), demo, {})
     if key in ("dmp_fv", "dmp_fv_strike"):
@@ -248,8 +251,8 @@ def run_method(
         opts: dict[str, Any] = {}
         if disturbance is not None:
             opts["disturbance"] = disturbance
-        if fitted.key == "psm_rest":
-            opts["rest_retime"] = True
+        if fitted.key == "psm_before":
+            opts["rest_retime"] = False
         if goal_fn is not None:
             opts["goal_fn"] = goal_fn
         elif goal is not None:

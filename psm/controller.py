@@ -24,7 +24,7 @@ pushes, moved starts and moving goals (paper §III-C..F; corrected equations in 
 * **start retiming** (option ``start_retime``): at the first step the slope of the segment the
   motion starts in is re-solved so that the segment keeps its nominal duration from the actual
   start (as a DMP keeps its execution time);
-* **rest retiming** (option ``rest_retime``, off by default): a dimension that comes to rest
+* **rest retiming** (option ``rest_retime``, on by default): a dimension that comes to rest
   inside a segment (held still, stopped by a push) re-solves that segment's slope so that it
   takes the nominal time left from there (the segment's nominal duration times the fraction of
   its length still ahead). Without it a dimension at rest short of a via-point at rest crawls
@@ -133,7 +133,7 @@ class PSMController:
         sync_time: float = 0.1,
         start_retime: bool = False,
         start_shift: bool = False,
-        rest_retime: bool = False,
+        rest_retime: bool = True,
         segment_retime: bool = True,
     ) -> None:
         validate_sync(sync_mode, sync_time)

@@ -400,14 +400,14 @@ class PhaseSpaceModel:
         sync_time: float | None = None,
         start_retime: bool | None = None,
         start_shift: bool | None = None,
-        rest_retime: bool = False,
+        rest_retime: bool = True,
         segment_retime: bool = True,
     ) -> PSMController:
         """An online controller towards ``goal (D,)`` [unit] (default: the demonstration's goal).
 
         ``sync_gain``, ``sync_mode``, ``sync_time``, ``start_retime``, ``start_shift`` and
         ``wrong_way_accel`` override the model's defaults; ``terminal_omega`` [rad/s] is the
-        goal-holding spring's natural frequency (default ``0.2/dt``). ``rest_retime`` (off by
+        goal-holding spring's natural frequency (default ``0.2/dt``). ``rest_retime`` (on by
         default, not a model parameter): a dimension brought to rest inside a segment (held,
         stopped by a push) re-solves that segment's slope for the nominal time left;
         ``segment_retime`` (on by default, not a model parameter): a segment entered on its
@@ -457,7 +457,7 @@ class PhaseSpaceModel:
         sync_time: float | None = None,
         start_retime: bool | None = None,
         start_shift: bool | None = None,
-        rest_retime: bool = False,
+        rest_retime: bool = True,
         segment_retime: bool = True,
     ) -> Rollout:
         """Generate a motion from ``x0 (D,)`` [unit] (default: the demonstration's start) with initial

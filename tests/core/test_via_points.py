@@ -175,3 +175,31 @@ def test_a_version_1_file_loads_as_fitted_without_the_new_via_points() -> None:
     old = PhaseSpaceModel.from_dict(data)
     assert old.parameters.velocity_extrema is False and old.parameters.via_point_times == []
     np.testing.assert_array_equal(old.rollout(dt=0.002).x, model.rollout(dt=0.002).x)
+
+
+def test_velocity_extrema_are_on_by_default_and_join_the_plain_segmentation() -> None:
+    """Two strokes with a slow-down between them (noisy): every cut of the automatic
+    segmentation without the extrema is kept with them, or moved onto an extremum by less than
+    the extremum's spacing; the peaks are added with the unsmoothed velocity, the slow dip keeps
+    the smoothed one."""
+    t = np.arange(0.0, 3.0 + 1e-9, 0.002)
+    v = np.where(t < 1.5, 0.3, 0.5) * np.sin(np.pi * t / 1.5) ** 2 + 0.05 * np.sin(np.pi * t / 3.0)
+    x = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * 0.002)])
+    x = x + np.random.default_rng(3).normal(0.0, 2e-5, x.shape)
+    plain = PhaseSpaceModel.fit(t, x, velocity_extrema=False, auto_tolerance=2e-4)
+    model = PhaseSpaceModel.fit(t, x, auto_tolerance=2e-4)
+    assert model.parameters.velocity_extrema is True and plain.parameters.velocity_extrema is False
+    cuts, plain_cuts = np.asarray(model.cut_times[0]), np.asarray(plain.cut_times[0])
+    assert len(cuts) > len(plain_cuts)
+    spacing = 0.02 + 1e-9  # one smoothing width: the extrema's spacing
+    assert all(np.min(np.abs(cuts - c)) < spacing for c in plain_cuts)
+    vel = model.via_points[0].velocity
+    peaks = ((0.75, 0.3 + 0.05 * math.sin(math.pi / 4)), (2.25, 0.5 + 0.05 * math.sin(3 * math.pi / 4)))
+    for t_e, v_e in peaks:
+        i = int(np.argmin(np.abs(cuts - t_e)))
+        assert abs(cuts[i] - t_e) < 0.02 and vel[i] == pytest.approx(v_e, rel=0.02)
+    # the dip between the strokes (0.05 m/s, below RAW_VELOCITY_MIN_SPEED of the top speed)
+    i = int(np.argmin(np.abs(cuts - 1.5)))
+    assert abs(cuts[i] - 1.5) < 0.03
+    smoothed = smooth(t, x[:, None], model.parameters.smoothing).v[:, 0]
+    assert vel[i] == pytest.approx(smoothed[round(cuts[i] / 0.002)], abs=1e-12)
