@@ -1034,8 +1034,8 @@ def _add_task_via_points(
     it), so the fit is at least as fine as without them: no segment is merged. The task
     via-points then get their demonstrated velocities (:func:`_keep_velocities`), and a segment
     next to one that those velocities push beyond ``tolerance`` is split further as
-    :func:`_auto_cuts` does (up to ``max_segments`` besides the task via-points); the segments
-    away from them keep the fit they had."""
+    :func:`_auto_cuts` does (up to ``max_segments`` plus the most task via-points added to any
+    one dimension); the segments away from them keep the fit they had."""
     T = samples.T
     redo: dict[int, list[int]] = {}
     near: list[set[tuple[int, int]]] = []  # per dimension redone: the segments next to a new one
@@ -1096,11 +1096,13 @@ def fit_dimensions(
     reversals are added as cuts), or a sequence of cut times [s] from the demonstration's start.
     A dimension whose range is below ``hold_tolerance`` [unit] becomes one rest-to-rest hold.
     ``k_fit``: one of :data:`K_FIT_MODES`.
-    Task via-points (:func:`task_via_points`), kept whatever ``segments`` says, with the velocity
-    of ``raw`` (``None``: the smoothed ``v``): the velocity extrema of every moving dimension with
-    the hysteresis ``extremum_tolerance`` [unit/s], at least 8 times the noise left in the
-    velocity (:func:`velocity_extremum_points`; ``None``: none), and the samples nearest to
-    ``via_point_times`` [s] (checked by :func:`check_via_point_times`).
+    Task via-points (:func:`task_via_points`), kept whatever ``segments`` says, with their
+    demonstrated velocities (:func:`_keep_velocities`; ``raw`` ``None``: the smoothed ``v``): the
+    velocity extrema of every moving dimension with the hysteresis ``extremum_tolerance``
+    [unit/s], at least 8 times the noise left in the velocity (:func:`velocity_extremum_points`;
+    ``None``: none), and the samples nearest to ``via_point_times`` [s] (checked by
+    :func:`check_via_point_times`). With ``"auto"`` they join the segmentation found without
+    them (:func:`_add_task_via_points`); otherwise they are fixed cuts beside ``segments``.
     """
     T, D = x.shape
     duration = float(demo_t[-1])

@@ -175,8 +175,10 @@ def test_a_rate_limit_of_zero_forwards_every_sample(procs: Callable[..., Proc], 
     """The limit is what throttles (the test above would fail without it): unthrottled, the
     client gets the 500 Hz stream whole once it is subscribed."""
     port = _start_viewer(procs, router, "--set", 'viewer.max_rate_hz={"psm.ArmState"=0}')
-    pub = procs(["-m", "tests.bus.stream_tool", router, "--seconds", "3", "--image-hz", "1"], "stream")
-    seen = watch(port, 20.0, until=lambda r: not pub.alive() and bool(r.messages))
+    # Long enough for the client to subscribe on a loaded machine (the viewer advertises a
+    # channel when its first sample arrives; the client subscribes to it then).
+    pub = procs(["-m", "tests.bus.stream_tool", router, "--seconds", "6", "--image-hz", "1"], "stream")
+    seen = watch(port, 30.0, until=lambda r: not pub.alive() and "psm/arm/state" in r.messages)
     assert pub.wait(10.0) == 0, pub.stderr()
     ticks = [ArmState.FromString(p).tick for _, _, p in seen.messages["psm/arm/state"]]
     assert len(ticks) > 1000
