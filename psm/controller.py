@@ -68,6 +68,10 @@ SEGMENT_RETIME_SPEED_FRACTION = 0.1
 #: this many control ticks and this fraction of the segment's nominal duration.
 SEGMENT_RETIME_TICKS = 2.0
 SEGMENT_RETIME_DURATION_FRACTION = 0.02
+#: Defaults of the controller options ``rest_retime`` and ``segment_retime`` (also those of
+#: :meth:`psm.PhaseSpaceModel.controller` and :meth:`~psm.PhaseSpaceModel.rollout`).
+REST_RETIME_DEFAULT = True
+SEGMENT_RETIME_DEFAULT = True
 
 #: Controller modes of one dimension (reported by :attr:`PSMController.modes`).
 MODE_SEGMENT = "segment"
@@ -133,8 +137,8 @@ class PSMController:
         sync_time: float = 0.1,
         start_retime: bool = False,
         start_shift: bool = False,
-        rest_retime: bool = True,
-        segment_retime: bool = True,
+        rest_retime: bool = REST_RETIME_DEFAULT,
+        segment_retime: bool = SEGMENT_RETIME_DEFAULT,
     ) -> None:
         validate_sync(sync_mode, sync_time)
         self._D = len(chains)

@@ -559,6 +559,14 @@ class _Samples:
         self.t_all = np.tile(t, x.shape[1])  # (D·T,): the time of every element of x
         self.sums = _PrefixSums(x, a)
 
+    def set_velocities(self, d: int, samples: Sequence[int], velocities: NDArray) -> None:
+        """Set the via-point velocities ``(n,)`` [unit/s] of dimension ``d`` at ``samples (n,)``,
+        in ``v_knot`` and in the split search's ``states``."""
+        flat = [d * self.T + i for i in samples]
+        self.v_knot[flat] = velocities
+        self.states[1, flat] = self.v_knot[flat] ** 2
+        self.states[2, flat] = np.abs(self.v_knot[flat])
+
 
 class _Segmenter:
     """Fits one segment of one dimension ``d`` between two sample indices (inclusive).
@@ -984,31 +992,22 @@ def _chain(segmenter: _Segmenter, cuts: list[int]) -> DimensionFit:
     )
 
 
-def _keep_velocities(
-    v_knot: NDArray,
-    v: NDArray,
-    raw: RawDemo | None,
-    demo_t: NDArray,
-    task: Sequence[int],
-    d: int,
-    user: Sequence[int],
-) -> None:
-    """Give the task via-points ``task`` of dimension ``d`` their demonstrated velocity in
-    ``v_knot (T, D)``: that of ``raw`` (the unsmoothed demonstration; ``None``: the smoothed
+def _task_velocities(
+    v: NDArray, raw: RawDemo | None, demo_t: NDArray, task: Sequence[int], d: int, user: Sequence[int]
+) -> NDArray:
+    """The demonstrated velocities ``(n,)`` [unit/s] of the task via-points ``task`` (samples) of
+    dimension ``d``: that of ``raw`` (the unsmoothed demonstration; ``None``: the smoothed
     ``v (T, D)`` everywhere) at the user's samples ``user`` and at the velocity extrema at least
     :data:`RAW_VELOCITY_MIN_SPEED` of the top speed fast, the smoothed one at the others."""
-    if not task:
-        return
     idx = list(task)
-    if raw is None:
-        v_knot[idx, d] = v[idx, d]
-        return
-    users = set(user)
-    top = RAW_VELOCITY_MIN_SPEED * raw.speed_scale
-    keep_raw = [i for i in idx if i in users or abs(v[i, d]) >= top]
-    v_knot[idx, d] = v[idx, d]
-    if keep_raw:
-        v_knot[keep_raw, d] = raw.velocity(demo_t[keep_raw], d)
+    out = v[idx, d].copy()
+    if raw is not None and idx:
+        users = set(user)
+        top = RAW_VELOCITY_MIN_SPEED * raw.speed_scale
+        keep = [n for n, i in enumerate(idx) if i in users or abs(v[i, d]) >= top]
+        if keep:
+            out[keep] = raw.velocity(demo_t[[idx[n] for n in keep]], d)
+    return out
 
 
 def _add_task_via_points(
@@ -1018,7 +1017,6 @@ def _add_task_via_points(
     extrema: dict[int, list[int]],
     samples: _Samples,
     segmenters: dict[int, _Segmenter],
-    v_knot: NDArray,
     v: NDArray,
     raw: RawDemo | None,
     demo_t: NDArray,
@@ -1032,11 +1030,10 @@ def _add_task_via_points(
     The task via-points join the segmentation found without them
     (:func:`insert_task_via_points`: an automatic cut closer than the spacing to one moves onto
     it), so the fit is at least as fine as without them: no segment is merged. The task
-    via-points then get their demonstrated velocities (:func:`_keep_velocities`), and a segment
+    via-points then get their demonstrated velocities (:func:`_task_velocities`), and a segment
     next to one that those velocities push beyond ``tolerance`` is split further as
     :func:`_auto_cuts` does (up to ``max_segments`` plus the most task via-points added to any
     one dimension); the segments away from them keep the fit they had."""
-    T = samples.T
     redo: dict[int, list[int]] = {}
     near: list[set[tuple[int, int]]] = []  # per dimension redone: the segments next to a new one
     added_most = 0
@@ -1046,11 +1043,7 @@ def _add_task_via_points(
         )
         if not added:
             continue
-        _keep_velocities(v_knot, v, raw, demo_t, added, d, user)
-        flat = [d * T + i for i in added]
-        samples.v_knot[flat] = v_knot[added, d]
-        samples.states[1, flat] = samples.v_knot[flat] ** 2
-        samples.states[2, flat] = np.abs(samples.v_knot[flat])
+        samples.set_velocities(d, added, _task_velocities(v, raw, demo_t, added, d, user))
         segmenters[d].forget(added)
         redo[d] = new
         task = set(added)
@@ -1097,7 +1090,7 @@ def fit_dimensions(
     A dimension whose range is below ``hold_tolerance`` [unit] becomes one rest-to-rest hold.
     ``k_fit``: one of :data:`K_FIT_MODES`.
     Task via-points (:func:`task_via_points`), kept whatever ``segments`` says, with their
-    demonstrated velocities (:func:`_keep_velocities`; ``raw`` ``None``: the smoothed ``v``): the
+    demonstrated velocities (:func:`_task_velocities`; ``raw`` ``None``: the smoothed ``v``): the
     velocity extrema of every moving dimension with the hysteresis ``extremum_tolerance``
     [unit/s], at least 8 times the noise left in the velocity (:func:`velocity_extremum_points`;
     ``None``: none), and the samples nearest to ``via_point_times`` [s] (checked by
@@ -1138,7 +1131,7 @@ def fit_dimensions(
                     fixed[d], user, candidates[d], x[:, d], min_segment_samples, hold_tolerance
                 )
                 fixed[d].update(task)
-                _keep_velocities(v_knot, v, raw, demo_t, task, d, user)
+                v_knot[task, d] = _task_velocities(v, raw, demo_t, task, d, user)
     if not fixed:  # nothing moves (segments is not even looked at, as for one hold dimension)
         return [_hold(x[:, d], duration) for d in range(D)]
     samples = _Samples(demo_t, x, v_knot, a, dt, min_speed_ratio)
@@ -1156,7 +1149,7 @@ def fit_dimensions(
         if user or any(candidates.values()):
             cuts = _add_task_via_points(
                 dict(zip(fixed, cuts, strict=True)), fixed, user, candidates, samples, segmenters,
-                v_knot, v, raw, demo_t, auto_tolerance, min_segment_samples, hold_tolerance, max_segments,
+                v, raw, demo_t, auto_tolerance, min_segment_samples, hold_tolerance, max_segments,
             )
     else:
         if isinstance(segments, int | np.integer):

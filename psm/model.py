@@ -23,7 +23,13 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from psm.controller import DimensionChain, PSMController, validate_sync
+from psm.controller import (
+    REST_RETIME_DEFAULT,
+    SEGMENT_RETIME_DEFAULT,
+    DimensionChain,
+    PSMController,
+    validate_sync,
+)
 from psm.errors import ModelFileError, ParameterError, ShapeError
 from psm.fitting import (
     K_FIT_MODES,
@@ -400,8 +406,8 @@ class PhaseSpaceModel:
         sync_time: float | None = None,
         start_retime: bool | None = None,
         start_shift: bool | None = None,
-        rest_retime: bool = True,
-        segment_retime: bool = True,
+        rest_retime: bool = REST_RETIME_DEFAULT,
+        segment_retime: bool = SEGMENT_RETIME_DEFAULT,
     ) -> PSMController:
         """An online controller towards ``goal (D,)`` [unit] (default: the demonstration's goal).
 
@@ -457,8 +463,8 @@ class PhaseSpaceModel:
         sync_time: float | None = None,
         start_retime: bool | None = None,
         start_shift: bool | None = None,
-        rest_retime: bool = True,
-        segment_retime: bool = True,
+        rest_retime: bool = REST_RETIME_DEFAULT,
+        segment_retime: bool = SEGMENT_RETIME_DEFAULT,
     ) -> Rollout:
         """Generate a motion from ``x0 (D,)`` [unit] (default: the demonstration's start) with initial
         velocity ``v0 (D,)`` [unit/s] (default 0) towards ``goal (D,)`` (default: the demonstration's).

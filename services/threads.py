@@ -36,51 +36,53 @@ def _loaded_libraries(fragment: str) -> list[str]:
     return sorted(p for p in paths if fragment in p.rsplit("/", 1)[-1].lower())
 
 
-def limit_blas_threads(n: int = 1) -> list[str]:
-    """Set every OpenBLAS loaded so far to ``n`` threads; returns the libraries changed.
-
-    Call it after numpy/scipy's linear algebra is imported (a library loaded later keeps its
-    default). Linux only (reads ``/proc/self/maps``); elsewhere it does nothing."""
-    changed = []
-    for path in _loaded_libraries("openblas"):
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for name in _OPENBLAS_SETTERS:
-            setter = getattr(lib, name, None)
-            if setter is not None:
-                setter.argtypes = [ctypes.c_int]
-                setter.restype = None
-                setter(int(n))
-                changed.append(path)
-                break
-    return changed
-
-
 #: Getter symbols matching :data:`_OPENBLAS_SETTERS`.
 _OPENBLAS_GETTERS = tuple(name.replace("_set_", "_get_") for name in _OPENBLAS_SETTERS)
 
 
-@contextlib.contextmanager
-def blas_threads(n: int = 1) -> Iterator[None]:
-    """Run the block with every OpenBLAS loaded so far at ``n`` threads, then restore each one's
-    count. A computation that must round as a service's does (the services run BLAS on one
-    thread: :func:`limit_blas_threads`) runs in it: OpenBLAS's threaded kernels sum in another
-    order, so even small products can differ in the last bit."""
-    previous: list[tuple[Any, int]] = []
+def openblas_thread_controls() -> list[tuple[str, Any, Any]]:
+    """``(path, get, set)`` of every OpenBLAS loaded so far: its thread-count getter (None when
+    the build has none) and setter. Linux only (reads ``/proc/self/maps``); elsewhere ``[]``."""
+    out = []
     for path in _loaded_libraries("openblas"):
         try:
             lib = ctypes.CDLL(path)
         except OSError:
             continue
         for get_name, set_name in zip(_OPENBLAS_GETTERS, _OPENBLAS_SETTERS, strict=True):
-            getter, setter = getattr(lib, get_name, None), getattr(lib, set_name, None)
-            if getter is not None and setter is not None:
-                getter.restype, setter.argtypes, setter.restype = ctypes.c_int, [ctypes.c_int], None
-                previous.append((setter, int(getter())))
-                setter(int(n))
+            setter = getattr(lib, set_name, None)
+            if setter is not None:
+                setter.argtypes, setter.restype = [ctypes.c_int], None
+                getter = getattr(lib, get_name, None)
+                if getter is not None:
+                    getter.restype = ctypes.c_int
+                out.append((path, getter, setter))
                 break
+    return out
+
+
+def limit_blas_threads(n: int = 1) -> list[str]:
+    """Set every OpenBLAS loaded so far to ``n`` threads; returns the libraries changed.
+
+    Call it after numpy/scipy's linear algebra is imported (a library loaded later keeps its
+    default). Linux only (reads ``/proc/self/maps``); elsewhere it does nothing."""
+    changed = []
+    for path, _, setter in openblas_thread_controls():
+        setter(int(n))
+        changed.append(path)
+    return changed
+
+
+@contextlib.contextmanager
+def blas_threads(n: int = 1) -> Iterator[None]:
+    """Run the block (or the decorated function) with every OpenBLAS loaded so far at ``n``
+    threads, then restore each one's count. A computation that must round as a service's does
+    (the services run BLAS on one thread: :func:`limit_blas_threads`) runs in it: OpenBLAS's
+    threaded kernels sum in another order, so even small products can differ in the last bit."""
+    previous = [(setter, int(getter())) for _, getter, setter in openblas_thread_controls()
+                if getter is not None]
+    for setter, _ in previous:
+        setter(int(n))
     try:
         yield
     finally:

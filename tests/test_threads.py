@@ -2,25 +2,14 @@
 
 from __future__ import annotations
 
-import ctypes
-
 import numpy as np
 import pytest
 
-from services.threads import _OPENBLAS_GETTERS, _loaded_libraries, blas_threads
+from services.threads import blas_threads, openblas_thread_controls
 
 
 def _counts() -> list[int]:
-    out = []
-    for path in _loaded_libraries("openblas"):
-        lib = ctypes.CDLL(path)
-        for name in _OPENBLAS_GETTERS:
-            getter = getattr(lib, name, None)
-            if getter is not None:
-                getter.restype = ctypes.c_int
-                out.append(int(getter()))
-                break
-    return out
+    return [int(get()) for _, get, _ in openblas_thread_controls() if get is not None]
 
 
 def test_blas_threads_sets_the_count_inside_the_block_and_restores_it() -> None:
@@ -34,3 +23,9 @@ def test_blas_threads_sets_the_count_inside_the_block_and_restores_it() -> None:
     with pytest.raises(RuntimeError), blas_threads(1):
         raise RuntimeError("restored on error too")
     assert _counts() == before
+
+    @blas_threads(1)
+    def inside() -> list[int]:
+        return _counts()
+
+    assert inside() == [1] * len(before) and _counts() == before

@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from services.planner.models import TaskModels
 from services.planner.sequencer import CollisionInfo, CollisionPolicy, TaskRunner
+from services.threads import blas_threads
 
 __all__ = [
     "CollisionFn",
@@ -105,6 +106,7 @@ class SimulationResult:
     runner: TaskRunner
 
 
+@blas_threads(1)
 def simulate_task(
     config: Any,
     models: TaskModels,
@@ -140,32 +142,6 @@ def simulate_task(
         joint_accel_fraction: the planner's ``joint_accel_fraction`` (None: its default; 0: the
             commands are not scaled into the joint limits).
     """
-    from services.threads import blas_threads
-
-    with blas_threads(1):
-        return _simulate_task(
-            config, models, goals=goals, goal_rate_hz=goal_rate_hz, goal_updates=goal_updates,
-            start_pose=start_pose, dt_s=dt_s, max_s=max_s, arm=arm, collision=collision,
-            prediction_max_age_s=prediction_max_age_s, joint_accel_fraction=joint_accel_fraction,
-        )
-
-
-def _simulate_task(
-    config: Any,
-    models: TaskModels,
-    *,
-    goals: LiveGoalFn | None,
-    goal_rate_hz: float,
-    goal_updates: Sequence[GoalUpdate],
-    start_pose: str | list[float],
-    dt_s: float,
-    max_s: float,
-    arm: Mapping[str, Any] | None,
-    collision: CollisionFn | None,
-    prediction_max_age_s: float,
-    joint_accel_fraction: float | None,
-) -> SimulationResult:
-    """:func:`simulate_task` (its arguments, all given)."""
     from services.arm.config import ArmSection
     from services.arm.sim import ArmSim
     from services.planner.config import PlannerSection

@@ -12,6 +12,7 @@ public one cannot be pulled)."""
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -41,6 +42,7 @@ def _run(cmd: list[str], timeout_s: float, **kw: object) -> subprocess.Completed
 COMPOSE_VERSIONS = {"v2": (["docker", "compose"], "2."), "1.29": (["docker-compose"], "1.29")}
 
 
+@functools.cache
 def compose_commands() -> dict[str, list[str]]:
     """The implementations of :data:`COMPOSE_VERSIONS` installed here, by name, v2 first."""
     found = {}

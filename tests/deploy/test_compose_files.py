@@ -105,9 +105,6 @@ def test_a_stack_without_a_router_is_a_config_error() -> None:
         compose_files(stack)
 
 
-_INSTALLED = compose_commands()
-
-
 @pytest.mark.parametrize("compose", list(COMPOSE_VERSIONS))
 @pytest.mark.parametrize("files", [
     ["compose.yaml"],
@@ -123,11 +120,12 @@ _INSTALLED = compose_commands()
 def test_compose_accepts_the_files(files: list[str], compose: str) -> None:
     """``config -q`` of docker compose v2 and of docker-compose 1.29 accepts every combination
     of the files the docs give (without an engine)."""
-    if compose not in _INSTALLED:
+    installed = compose_commands()
+    if compose not in installed:
         if os.environ.get("PSM_REQUIRE_DOCKER") == "1":
             pytest.fail(f"PSM_REQUIRE_DOCKER=1 but compose {compose} is not installed")
         pytest.skip(f"compose {compose} not installed (docker/install-compose-v2.sh)")
-    argv = list(_INSTALLED[compose])
+    argv = list(installed[compose])
     for f in files:
         argv += ["-f", str(DOCKER_DIR / f)]
     env = {"PATH": "/usr/bin:/bin", "PSM_ROUTER_HOST": "arm-host", "PSM_CAMERA_URL": "rtsp://cam/1"}
