@@ -126,10 +126,13 @@ def test_the_viewer_forwards_the_bus_to_a_foxglove_client_throttled(
 ) -> None:
     port = _start_viewer(procs, router)
     pub = procs(["-m", "tests.bus.stream_tool", router, "--seconds", "4"], "stream")
-    seen = watch(port, 20.0, until=lambda r: not pub.alive() and bool(r.messages))
+    expected = ("psm/arm/state", "psm/goals/person", "psm/camera/cam0/image")
+    seen = watch(port, 20.0, until=lambda r: not pub.alive() and all(t in r.messages for t in expected))
     assert pub.wait(10.0) == 0, pub.stderr()
     sent = json.loads(pub.stdout().strip().splitlines()[-1])
     assert sent["states"] > 1500 and sent["images"] > 90, sent
+    assert all(t in seen.messages for t in expected), (
+        {t: len(m) for t, m in seen.messages.items()}, sorted(c["topic"] for c in seen.channels.values()))
 
     # Server: the SDK's, speaking foxglove.sdk.v1, named after the cell.
     assert seen.server_info["name"] == "psm psm"
