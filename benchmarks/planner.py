@@ -70,7 +70,6 @@ import json
 import logging
 import os
 import platform
-import re
 import signal
 import socket
 import sys
@@ -189,15 +188,6 @@ def cpu_window(samples: Sequence[tuple[float, Mapping[str, float | None]]]) -> d
     dt = t1 - t0
     pct = {n: round(100.0 * (float(end[n]) - float(first[n])) / dt, 1) for n in names}  # type: ignore[arg-type]
     return {"window_s": round(dt, 2), "cpu_pct": pct}
-
-
-def static_person_task(feeding_toml: str) -> str:
-    """The feeding task file's text with every live step made static (``live = false``: its
-    goal is the scene position of the same name). Raises ``ValueError`` if nothing changed."""
-    out, n = re.subn(r"(?m)^(\s*live\s*=\s*)true\b", r"\1false", feeding_toml)
-    if n == 0:
-        raise ValueError("no live step in the task file")
-    return out
 
 
 def bench_stack_file(*, endpoint: str, prefix: str, clock: str, workdir: Path, task_file: Path,
@@ -667,7 +657,7 @@ class CpuSampler:
 def closed_loop(clock: str, workdir: Path, *, round_trips: int = 0, warmup: int = 0) -> dict[str, Any]:
     """Router + planner + arm on ``clock`` (see the module docstring, parts b and c); with
     ``round_trips`` the raw ping-pong bound through the same router before and after the task."""
-    from services.tasks.feeding import DEFAULT_FEEDING_CONFIG, load_feeding
+    from services.tasks.feeding import DEFAULT_FEEDING_CONFIG, load_feeding, static_person_task
 
     dep = deployed()
     port = free_port()

@@ -355,24 +355,24 @@ def turning_points(x: NDArray, tolerance: float) -> list[int]:
     if nz.size < 2:
         return []
     flips = nz[1:][sign[nz[1:]] != sign[nz[:-1]]]  # first step of each new direction
-    candidates = [*list(flips), x.shape[0] - 1]
+    candidates = [*flips.tolist(), x.shape[0] - 1]
+    values = x[candidates].tolist()  # the loop runs on Python floats
     pivots: list[int] = []
     trend = 0.0
-    origin = 0
-    extreme = 0
-    for i in candidates:
-        xi = x[i]
+    x_origin = float(x[0])
+    extreme, x_extreme = 0, x_origin
+    for i, xi in zip(candidates, values, strict=True):
         if trend == 0.0:
-            if abs(xi - x[origin]) >= tolerance:
-                trend = math.copysign(1.0, xi - x[origin])
-                extreme = i
+            if abs(xi - x_origin) >= tolerance:
+                trend = math.copysign(1.0, xi - x_origin)
+                extreme, x_extreme = i, xi
             continue
-        if (xi - x[extreme]) * trend > 0.0:
-            extreme = i
-        elif (x[extreme] - xi) * trend >= tolerance:
+        if (xi - x_extreme) * trend > 0.0:
+            extreme, x_extreme = i, xi
+        elif (x_extreme - xi) * trend >= tolerance:
             pivots.append(extreme)
             trend = -trend
-            extreme = i
+            extreme, x_extreme = i, xi
     if trend == 0.0:
         return []
     # Refine each pivot to the extreme sample between its neighbours (candidates are step starts).

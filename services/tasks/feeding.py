@@ -27,6 +27,7 @@ three finite numbers, no steps, a static goal that is not a scene position) and 
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -148,6 +149,16 @@ def load_feeding(path: str | Path | None = None) -> FeedingConfig:
     return parse_feeding(data, str(p))
 
 
+def static_person_task(feeding_toml: str) -> str:
+    """The feeding task file's text with every live step made static (``live = false``: its
+    goal is the scene position of the same name), for runs that must not depend on the camera
+    and the goal tracker. Raises ``ValueError`` if the text has no live step."""
+    out, n = re.subn(r"(?m)^(\s*live\s*=\s*)true\b", r"\1false", feeding_toml)
+    if n == 0:
+        raise ValueError("no live step in the task file")
+    return out
+
+
 __all__ = [
     "DEFAULT_FEEDING_CONFIG",
     "FeedingConfig",
@@ -156,4 +167,5 @@ __all__ = [
     "Vec3",
     "load_feeding",
     "parse_feeding",
+    "static_person_task",
 ]

@@ -24,12 +24,11 @@ from benchmarks.planner import (
     render_markdown,
     replay_parts,
     replay_total,
-    static_person_task,
     status_window,
     verdicts,
 )
 from services.stack import load_stack
-from services.tasks.feeding import DEFAULT_FEEDING_CONFIG, load_feeding
+from services.tasks.feeding import DEFAULT_FEEDING_CONFIG, static_person_task
 
 
 def test_percentiles_and_the_pingpong_bound() -> None:
@@ -75,18 +74,6 @@ def test_cpu_window_ends_at_the_last_sample_with_every_process_alive() -> None:
     assert w["window_s"] == 2.0
     assert w["cpu_pct"] == {"a": 50.0, "b": 10.0}
     assert cpu_window([])["cpu_pct"] == {}
-
-
-def test_the_static_person_task_has_the_same_steps_and_no_live_goal(tmp_path: Path) -> None:
-    text = static_person_task(DEFAULT_FEEDING_CONFIG.read_text())
-    path = tmp_path / "feeding.toml"
-    path.write_text(text)
-    static, shipped = load_feeding(path), load_feeding()
-    assert static.task.sequence == shipped.task.sequence
-    assert not any(s.live for s in static.task.steps) and any(s.live for s in shipped.task.steps)
-    assert static.scene == shipped.scene
-    with pytest.raises(ValueError):
-        static_person_task(text)
 
 
 def test_the_bench_stack_file_is_a_valid_stack(tmp_path: Path) -> None:

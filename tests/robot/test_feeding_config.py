@@ -10,7 +10,12 @@ from pathlib import Path
 import pydantic
 import pytest
 
-from services.tasks.feeding import DEFAULT_FEEDING_CONFIG, FeedingConfigError, load_feeding
+from services.tasks.feeding import (
+    DEFAULT_FEEDING_CONFIG,
+    FeedingConfigError,
+    load_feeding,
+    static_person_task,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -72,3 +77,15 @@ def test_cli_reports_one_line(tmp_path: Path) -> None:
     assert proc.returncode == 2
     expected = f"psm teach: error: {bad}: scene.bowl: expected 3 finite numbers (m), got [1, 2]"
     assert proc.stderr.strip() == expected
+
+
+def test_the_static_person_task_has_the_same_steps_and_no_live_goal(tmp_path: Path) -> None:
+    text = static_person_task(DEFAULT_FEEDING_CONFIG.read_text())
+    path = tmp_path / "feeding.toml"
+    path.write_text(text)
+    static, shipped = load_feeding(path), load_feeding()
+    assert static.task.sequence == shipped.task.sequence
+    assert not any(s.live for s in static.task.steps) and any(s.live for s in shipped.task.steps)
+    assert static.scene == shipped.scene
+    with pytest.raises(ValueError):
+        static_person_task(text)
