@@ -13,12 +13,12 @@
    through ONE ``psm serve router`` on loopback, and one cell alone through the same kind of
    router for reference. Measured: both complete, each cell's arm trajectory against the cell
    alone (tick by tick), cross-talk (any key of the other prefix in a cell's recording), the
-   wall time and the lockstep rate of each. The cells run every process of the stack, camera
-   and goal tracker included, but the planner takes the person's goal from the scene
-   (:func:`services.tasks.feeding.static_person_task`): the tracker analyses the frames it
-   has on wall time, so a live goal differs between two runs of the same cell even alone, which
-   would hide any effect of one cell on the other. With the static goal a cell's trajectory is
-   a function of its configuration alone, and any difference is cross-talk.
+   wall time and the lockstep rate of each. The cells run every process of the stack, the
+   person's goal live from the synthetic camera and the goal tracker, with the planner's
+   ``live_goal_sync`` on: each state is answered once the goal of every camera frame due at
+   its time is in, so a cell's trajectory is a function of its configuration alone (without it
+   the tracker's wall-time pace made two runs of one cell alone differ) and any difference is
+   cross-talk.
 """
 
 from __future__ import annotations
@@ -37,7 +37,6 @@ from numpy.typing import NDArray
 
 from experiments.registry import Experiment, Progress
 from experiments.result import Column, ExperimentResult, Figure, Headline
-from services.tasks.feeding import static_person_task
 
 FloatArray = NDArray[np.float64]
 
@@ -454,8 +453,8 @@ class CellRun:
 
     def args(self, port: int, task_file: Path, cache_dir: Path, without: Sequence[str] = ()) -> list[str]:
         """``psm up`` arguments: the shipped stack without its router (and ``without``), on
-        ``prefix``, connected to the router at 127.0.0.1:``port``, lockstep, everything under
-        ``run_dir``."""
+        ``prefix``, connected to the router at 127.0.0.1:``port``, lockstep with the planner's
+        ``live_goal_sync``, everything under ``run_dir``."""
         values = [
             'clock="lockstep"',
             f'prefix="{self.prefix}"',
@@ -468,6 +467,7 @@ class CellRun:
             f'planner.progress_file="{self.run_dir / "progress.json"}"',
             f'arm.stats_file="{self.run_dir / "arm.json"}"',
             f'planner.cache_dir="{cache_dir}"',
+            "planner.live_goal_sync=true",
         ]
         return ["up", str(STACK_FILE), "--no-live", *(a for v in values for a in ("--set", v))]
 
@@ -640,7 +640,7 @@ def cell_outcome(cell: CellRun, others: Sequence[str]) -> dict[str, Any]:
 
 def cells_experiment(out_dir: Path, *, quick: bool, progress: Callable[[str], None]) -> dict[str, Any]:
     """One cell alone and two cells at once through one router, alternately, twice, on the
-    feeding task with the person's goal static (see the module docstring). The quick run
+    feeding task with the live goal synchronised (see the module docstring). The quick run
     (tests) is one pair only, on a reduced task: the first feeding step, without the camera and
     the goal tracker (only the last step uses them); its cells are compared with each other."""
     work = out_dir / "cells"
@@ -651,9 +651,7 @@ def cells_experiment(out_dir: Path, *, quick: bool, progress: Callable[[str], No
         runs = ["pair"]
         without = QUICK_WITHOUT
     else:
-        task_file = work / "task_static_person.toml"
-        task_file.write_text(static_person_task(TASK_FILE.read_text()))
-        runs, without = ["alone", "pair", "alone", "pair"], ()
+        task_file, runs, without = TASK_FILE, ["alone", "pair", "alone", "pair"], ()
     alone: list[dict[str, Any]] = []
     pairs: list[list[dict[str, Any]]] = []
     recordings: list[str] = []
@@ -965,9 +963,8 @@ def _report_cells(res: ExperimentResult, cells: dict[str, Any]) -> None:
         f"Δ: tick by tick against {cells['reference']} over the ticks both planners answered (the "
         "task and the hold after it). "
         f"Task file: {Path(cells['task_file']).name}"
-        + ("" if cells["without"] else " (configs/feeding.toml with the person's goal taken from the "
-           "scene, not from the tracker: the camera and the goal tracker run, the planner does not "
-           "use their goal)")
+        + ("" if cells["without"] else " (the person's goal live from the synthetic camera and the "
+           "goal tracker; the planner's live_goal_sync on)")
         + (f"; processes left out: {', '.join(cells['without'])}" if cells["without"] else "")
         + ". The machine was loaded (2 cores shared with other jobs).",
     )

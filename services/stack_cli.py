@@ -31,6 +31,9 @@ def _cmd_up(args: argparse.Namespace) -> int:
     stack = load_stack(args.stack or DEFAULT_STACK, overrides=parsed, view=args.view)
     if args.camera is not None:
         use_camera(stack)
+        if any(hasattr(c, "planner") for c in stack.configs.values()):
+            # A real camera's frames are not on the arm's clock: the planner cannot wait for them.
+            parsed["planner.live_goal_sync"] = False
     if args.record and not any(p.command[:1] == ["record"] for p in stack.processes):
         raise ConfigError("recorder.output", "--record needs a recorder process in the stack")
     # The processes read the overrides from their environment: a string as itself, anything

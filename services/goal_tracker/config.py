@@ -29,6 +29,7 @@ from pydantic import Field
 
 from services.bus.config import ConfigError, Section, ServiceConfig, Vec3
 from services.goal_tracker.detectors import HaarParams, PipelineParams, YuNetParams
+from services.goal_tracker.frames import SyntheticSection
 from services.goal_tracker.geometry import MeasurementNoise
 from services.goal_tracker.kalman import KalmanParams
 
@@ -177,49 +178,6 @@ class WorkspaceSection(Section):
             raise ConfigError("lower_m", f"must be < upper_m per axis, got {self.lower_m} vs {self.upper_m}")
         if self.max_radius_m and self.max_radius_m <= self.min_radius_m:
             raise ConfigError("max_radius_m", "must be > min_radius_m (or 0 = no limit)")
-
-
-class SyntheticSection(Section):
-    """``[goal_tracker.synthetic]``: the synthetic camera (astronaut face on a known path)."""
-
-    fps: float = Field(
-        30.0, gt=0.0, le=1000.0,
-        description="frame rate, Hz (frame k is the scene at t = k / fps)",
-    )
-    clock: Literal["wall", "arm"] = Field(
-        "wall",
-        description="wall: pace with the wall clock; arm: frame times from the arm's "
-        "sim time (<prefix>/arm/state), for deterministic lockstep runs",
-    )
-    frames: int = Field(0, ge=0, description="stop after this many frames (0 = endless)")
-    centre_m: Vec3 = Field(
-        default_factory=lambda: [0.0, 0.0, 0.9],
-        description="path centre, camera frame, m",
-    )
-    amplitude_m: Vec3 = Field(
-        default_factory=lambda: [0.15, 0.06, 0.15],
-        description="path amplitude per axis, m",
-    )
-    frequency_hz: Vec3 = Field(
-        default_factory=lambda: [0.10, 0.13, 0.07],
-        description="path frequency per axis, Hz",
-    )
-    phase_rad: Vec3 = Field(default_factory=lambda: [0.0, 0.5, 1.0], description="path phase per axis, rad")
-    face_width_m: float = Field(0.16, gt=0.0, description="physical width of the synthetic face box, m")
-    hidden_s: list[list[float]] = Field(
-        default_factory=list,
-        description="time windows [[t0, t1], ...] (s) the face is hidden",
-    )
-    noise_sigma: float = Field(2.0, ge=0.0, description="sensor noise, grey levels")
-    seed: int = Field(0, ge=0, description="background / noise seed")
-
-    def check(self) -> None:
-        """Vector lengths, path in front of the camera, windows ordered."""
-        if self.centre_m[2] - abs(self.amplitude_m[2]) <= 0.1:
-            raise ConfigError("centre_m", "the path must stay > 0.1 m in front of the camera")
-        for i, w in enumerate(self.hidden_s):
-            if len(w) != 2 or not w[0] < w[1]:
-                raise ConfigError(f"hidden_s[{i}]", f"expected [t0, t1] with t0 < t1, got {w}")
 
 
 class GoalTrackerSection(Section):

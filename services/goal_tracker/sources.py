@@ -11,20 +11,19 @@ message; a dropped stream is reopened with exponential backoff, and only after
 from __future__ import annotations
 
 import logging
-import math
 import os
 import queue
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from fractions import Fraction
 from typing import Any, Protocol
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from services.goal_tracker.frames import due_frame, frame_period_ns, frame_time_ns
 from services.goal_tracker.synthetic import SyntheticCamera
 
 _log = logging.getLogger("psm.goal_tracker.sources")
@@ -247,7 +246,7 @@ class SyntheticSource:
             raise ValueError(f"fps must be > 0, got {fps}")
         self.camera = camera
         self.fps = float(fps)
-        self._period = Fraction(10**9) / Fraction(self.fps).limit_denominator(10**6)
+        self._period = frame_period_ns(self.fps)
         self.sim_clock = sim_clock
         self.max_frames = max_frames
         self.stop = stop or threading.Event()
@@ -265,11 +264,11 @@ class SyntheticSource:
     def frame_time_ns(self, k: int) -> int:
         """Time of grid frame ``k`` on the source's clock, ns (from the start for the wall
         clock, absolute sim time for a sim clock)."""
-        return round(k * self._period)
+        return frame_time_ns(k, self._period)
 
     def _due_index(self, now_ns: int) -> int:
         """The latest grid frame whose time is at or before ``now_ns``."""
-        return math.floor(now_ns / self._period)
+        return due_frame(now_ns, self._period)
 
     def read(self, timeout_s: float = 1.0) -> Frame | None:
         """The latest due frame, or None if none is due within ``timeout_s``."""

@@ -16,9 +16,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from services.bus.config import ConfigError, Section, ServiceConfig
+from services.goal_tracker.frames import SyntheticSection
 from services.robot.description import ArmRobotView
 from services.robot.protocol import MAX_TICK_GAP, RESYNC_AFTER, STAMP_TOLERANCE_S
 
@@ -89,6 +90,21 @@ class PlannerSection(Section):
     monitor_service: str = Field(
         "obstacle_monitor", min_length=1, description="the obstacle monitor's service name (liveliness)"
     )
+    live_goal_sync: bool = Field(
+        False,
+        description="lockstep: answer a state only once the live goals of every camera frame due at its "
+        "time are in (the synthetic camera's frames on the arm's clock, [goal_tracker.synthetic]), so that "
+        "a run with live goals is reproducible tick by tick; realtime: no effect",
+    )
+    live_goal_wait_s: float = Field(
+        10.0, gt=0.0, le=600.0,
+        description="live_goal_sync: the longest wait for one frame's goals [s, wall clock]; after it the "
+        "state is answered with the goals known and the sync pauses until the next goal arrives",
+    )
+    tracker_service: str = Field(
+        "goal_tracker", min_length=1,
+        description="live_goal_sync: the goal tracker's service name (liveliness: once it is gone, no wait)",
+    )
 
     def task_path(self) -> Path:
         """The task file to load."""
@@ -102,6 +118,15 @@ class PlannerSection(Section):
             raise ConfigError("task_file", f"{self.task_path()}: no such file")
 
 
+class TrackerFramesView(BaseModel):
+    """The ``[goal_tracker]`` table as the planner reads it: the synthetic camera's section only
+    (its frame grid, for ``live_goal_sync``), the tracker's other fields ignored."""
+
+    model_config = ConfigDict(extra="ignore", validate_default=True, allow_inf_nan=False)
+
+    synthetic: SyntheticSection = Field(default_factory=SyntheticSection)
+
+
 class PlannerConfig(ServiceConfig):
     """Config of the ``psm plan`` service: bus settings + ``[planner]``."""
 
@@ -110,3 +135,17 @@ class PlannerConfig(ServiceConfig):
         default_factory=ArmRobotView,
         description="the robot the arm simulates: the [arm] table's robot fields",
     )
+    goal_tracker: TrackerFramesView = Field(
+        default_factory=TrackerFramesView,
+        description="the synthetic camera's frame grid: the [goal_tracker.synthetic] table",
+    )
+
+    @model_validator(mode="after")
+    def _sync_needs_frames_on_the_arm_clock(self) -> PlannerConfig:
+        if self.planner.live_goal_sync and self.goal_tracker.synthetic.clock != "arm":
+            raise ConfigError(
+                "planner.live_goal_sync",
+                "needs the synthetic camera's frames on the arm's clock "
+                "([goal_tracker.synthetic] clock = 'arm')",
+            )
+        return self

@@ -32,6 +32,16 @@ brakes to rest. In lockstep a state is answered once the prediction for its tick
 or held when the monitor disappears, is answered with what is known. In realtime the latest
 prediction is used at once (no wait on the control path).
 
+Live goals in lockstep (``live_goal_sync``): the goal tracker analyses the synthetic camera's
+frames as fast as it can, so without a rule the tick at which a new goal is first used depends
+on wall time. With the sync a state at sim time ``t`` is answered once every live goal of the
+task has arrived for the camera frame due at ``t`` (frame ``k`` at ``round(k · 10⁹ / fps)``
+ns on the arm's clock, :mod:`services.goal_tracker.frames`; the tracker publishes one goal per
+frame, valid or not): the camera renders that frame when it sees the state, so the goals in
+use at every tick, and the run, are a function of the inputs. The wait ends early once the
+tracker's liveliness is gone; a wait longer than ``live_goal_wait_s`` (wall clock) answers the
+state with the goals known and pauses the sync until the next live goal arrives.
+
 Threads: the state is handled on Zenoh's receive thread (decode into a reused message, checks,
 the controller step, encode into a reused command, ``put``: no queue hop, no allocation beyond
 a few small arrays); goals arrive on a subscription worker; both take one lock. Events and
@@ -79,6 +89,7 @@ from services.bus.messages import (
     encoding_for,
 )
 from services.bus.runtime import Service, ServiceApp, run_service
+from services.goal_tracker.frames import due_frame, frame_period_ns, frame_time_ns
 from services.planner.config import PlannerConfig
 from services.planner.feasibility import JointAccelerationScaling
 from services.planner.models import DEMOS_DIR, ModelCache, load_task_models
@@ -145,7 +156,19 @@ class PlannerService(ServiceApp):
         )
         # Lockstep: answer a state once the prediction for its tick is in (deterministic runs).
         self._wait_prediction = self._check_collisions and config.clock == "lockstep"
-        self._parked: tuple[bytes, int, int] | None = None  # (state payload, receive ns, tick)
+        # Lockstep with live_goal_sync: and once the live goals of every camera frame due at its
+        # time are in (the goal tracker in the loop, reproducibly).
+        sync = sec.live_goal_sync and config.clock == "lockstep"
+        self._live_names = sorted({s.goal for s in self.task_config.task.steps if s.live}) if sync else []
+        self._frame_period = frame_period_ns(config.goal_tracker.synthetic.fps) if self._live_names else None
+        self._live_stamp: dict[str, int] = {}  # live goal -> stamp of the latest one received [ns]
+        self._tracker_seen = False
+        self._tracker_alive = False
+        self._sync_paused = False  # after a wait that timed out, until the next live goal
+        self.goal_wait_timeouts = 0
+        #: The state waiting for its prediction or goals: (payload, receive ns, tick, sim time
+        #: [ns], monotonic time it was parked [s]).
+        self._parked: tuple[bytes, int, int, int, float] | None = None
         self._pred = CollisionPrediction()
         self._pred_encoding = encoding_for(CollisionPrediction)
         self._pred_tick = -1
@@ -235,6 +258,8 @@ class PlannerService(ServiceApp):
             # Not alive until its token is seen (no prediction yet means blocked either way).
             self.runner.set_monitor_alive(False)
             svc.watch_liveliness([self.config.planner.monitor_service], self._on_monitor)
+        if self._frame_period is not None:
+            svc.watch_liveliness([self.config.planner.tracker_service], self._on_tracker)
         task = self.task_config.task
         if self._progress_problem:
             svc.log.warning("progress file not used: the task starts from its first step",
@@ -260,19 +285,48 @@ class PlannerService(ServiceApp):
         with self._lock:
             if not self._parse_state(payload):
                 return
-            if self._wait_prediction:
-                superseded = self._parked is not None
+            if self._wait_prediction or self._frame_period is not None:
+                st = self._state
+                tick = int(st.tick)
+                # A later state supersedes a parked one (the arm stepped without an answer): it
+                # is answered with what is known. The same state offered again (before the first
+                # answer the arm repeats state 0) waits on.
+                superseded = self._parked is not None and tick > self._parked[2]
+                held = self._parked is not None and not superseded
+                parked_at = self._parked[4] if held and self._parked is not None else time.monotonic()
                 self._parked = None
-                tick = int(self._state.tick)
+                now_ns = int(st.sim_time_ns or st.stamp_ns)
                 if (
                     not superseded
-                    and self.runner.monitor_alive
-                    and tick > self._pred_tick
                     and tick != self._last_tick
+                    and (self._prediction_pending(tick) or self._goals_pending(now_ns))
                 ):
-                    self._parked = (payload, t_recv, tick)  # answered by _on_prediction
+                    # answered by _on_prediction / _on_goal / the loop's wait bound
+                    self._parked = (payload, t_recv, tick, now_ns, parked_at)
                     return
             self._handle_state(t_recv)
+
+    def _prediction_pending(self, tick: int) -> bool:
+        """Lockstep: the prediction for ``tick`` is still to come (under the lock)."""
+        return self._wait_prediction and self.runner.monitor_alive and tick > self._pred_tick
+
+    def _goals_pending(self, now_ns: int) -> bool:
+        """Lockstep with ``live_goal_sync``: a live goal of a camera frame due at the sim time
+        ``now_ns`` is still to come (under the lock). Never once the tracker is gone, nor while
+        the sync is paused after a wait ran out."""
+        period = self._frame_period
+        if period is None or self._sync_paused or (self._tracker_seen and not self._tracker_alive):
+            return False
+        due = frame_time_ns(due_frame(now_ns, period), period)
+        return any(self._live_stamp.get(name, -1) < due for name in self._live_names)
+
+    def _answer_if_ready(self) -> None:
+        """Answer the parked state once nothing it waits for is pending (under the lock)."""
+        parked = self._parked
+        if parked is None or self._prediction_pending(parked[2]) or self._goals_pending(parked[3]):
+            return
+        self.waited_states += 1
+        self._answer_parked()
 
     def _parse_state(self, payload: bytes) -> bool:
         """Parse ``payload`` into the reused state message; False (rejected) if it does not parse."""
@@ -369,9 +423,7 @@ class PlannerService(ServiceApp):
                     detail=pr.detail,
                 )
             )
-            if self._parked is not None and self._parked[2] <= tick:
-                self.waited_states += 1
-                self._answer_parked()
+            self._answer_if_ready()
 
     def _reject_prediction(self, reason: str, kind: str) -> None:
         self.rejected_predictions += 1
@@ -383,6 +435,36 @@ class PlannerService(ServiceApp):
             if not alive:
                 self.svc.log.warning("obstacle monitor gone: braking every axis", extra={"service": name})
                 self._answer_parked()
+
+    def _on_tracker(self, name: str, alive: bool) -> None:
+        """The goal tracker's liveliness (``live_goal_sync``): once it is gone, no state waits for
+        its goals."""
+        with self._lock:
+            self._tracker_alive = alive
+            if alive:
+                self._tracker_seen = True
+                return
+            self.svc.log.warning("goal tracker gone: states no longer wait for its goals",
+                                 extra={"service": name})
+            self._answer_if_ready()
+
+    def _check_goal_wait(self) -> None:
+        """The loop's bound on a wait for goals (``live_goal_wait_s``, wall clock): past it the
+        parked state is answered with the goals known and the sync pauses until the next live
+        goal arrives."""
+        with self._lock:
+            parked = self._parked
+            if parked is None or not self._goals_pending(parked[3]):
+                return
+            waited = time.monotonic() - parked[4]
+            if waited < self.config.planner.live_goal_wait_s:
+                return
+            self._sync_paused = True
+            self.goal_wait_timeouts += 1
+            self.svc.log.warning(
+                "no live goal for a due camera frame: answering without it, the sync pauses until the "
+                "next goal", extra={"tick": parked[2], "waited_s": round(waited, 3)})
+            self._answer_if_ready()
 
     def _read_joints(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The joints ``(q, dq)`` of the state being answered, for the joint acceleration scaling
@@ -529,6 +611,13 @@ class PlannerService(ServiceApp):
                 name, (p.x, p.y, p.z), int(msg.stamp_ns), bool(msg.valid), msg.invalid_reason, now_ns=now
             )
             kind = self.runner.goals.last_rejection_kind
+            sync = self._frame_period is not None and name in self._live_names
+            if sync and (not problem or kind != "stamp"):
+                # The goal of its frame is in, valid or not, used or rejected (a goal whose stamp
+                # was refused is not).
+                self._live_stamp[name] = max(self._live_stamp.get(name, -1), int(msg.stamp_ns))
+                self._sync_paused = False
+                self._answer_if_ready()
         if problem:
             self.svc.record_rejection(key, f"goal {name}: {problem}", kind)
 
@@ -543,6 +632,8 @@ class PlannerService(ServiceApp):
             # Woken by a transition: its events (and the progress file) go out at once.
             self._wake.wait(max(0.0, next_t - time.monotonic()))
             self._wake.clear()
+            if self._frame_period is not None:
+                self._check_goal_wait()
             self._publish_events()
             if time.monotonic() < next_t:
                 continue
@@ -672,9 +763,16 @@ class PlannerService(ServiceApp):
             if self._check_collisions:
                 out["planner"].update(
                     collision_stops=self.runner.collision_stops,
-                    waited_states=self.waited_states,
                     rejected_predictions=self.rejected_predictions,
                 )
+            if self._check_collisions or self._frame_period is not None:
+                out["planner"]["waited_states"] = self.waited_states
+            if self._frame_period is not None:
+                out["planner"]["live_goal_sync"] = {
+                    "goals": sorted(self._live_names),
+                    "frame_period_ns": float(self._frame_period),
+                    "wait_timeouts": self.goal_wait_timeouts,
+                }
         if lat is not None:
             p50, p99, p999 = np.percentile(lat, [50, 99, 99.9])
             out["planner"]["latency_us"] = {

@@ -83,3 +83,31 @@ def test_the_person_lost_holds_the_motion_and_it_resumes(tmp_path: Path) -> None
     assert kinds.index(("GOAL_LOST", "reach_person")) < kinds.index(("RESUMED", "reach_person"))
     # While holding the arm comes to rest.
     assert holding_speeds and min(holding_speeds) < 0.01, holding_speeds
+
+
+def test_with_live_goal_sync_two_lockstep_runs_with_the_tracker_are_identical(tmp_path: Path) -> None:
+    """The person's step alone (its goal live from the synthetic camera and the goal tracker),
+    twice in lockstep with ``planner.live_goal_sync``: every arm state the planners answered is
+    the same in both runs, bit for bit, and no wait for a goal ran out."""
+    from experiments.scale import compare_states, read_recording
+
+    feeding = (Path(__file__).resolve().parents[2] / "configs" / "feeding.toml").read_text()
+    head, *steps = feeding.split("[[task.steps]]")
+    assert "live = true" in steps[-1]
+    task = tmp_path / "person.toml"
+    task.write_text(head + "[[task.steps]]" + steps[-1])
+    runs = []
+    for name in ("a", "b"):
+        d = tmp_path / name
+        d.mkdir()
+        rc, log, summary = up(d, f'planner.task_file="{task}"', "planner.live_goal_sync=true")
+        assert rc == 0, log
+        task_summary = summary["task"]
+        assert task_summary["success"] and [s["step"] for s in task_summary["steps"]] == ["reach_person"]
+        sync = task_summary["planner"]["live_goal_sync"]
+        assert sync["goals"] == ["person"] and sync["wait_timeouts"] == 0, sync
+        runs.append(read_recording(d / "run.mcap"))
+        goals = sum(n for k, n in runs[-1]["topics"].items() if k.endswith("/goals/person"))
+        assert goals > 30, runs[-1]["topics"]  # the goal came live, frame by frame
+    same = compare_states(runs[0], runs[1])
+    assert same["common_ticks"] > 1000 and same["ticks_differing"] == 0, same

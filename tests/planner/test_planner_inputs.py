@@ -356,3 +356,96 @@ def test_a_goal_from_the_future_is_rejected() -> None:
                     position=Vec3(x=0.4, y=0.3, z=0.4)), "psm/goals/person")
     assert "ahead of the stack's clock" in fake.rejections[-1]
     assert "person" not in p.runner.goals.live
+
+
+# ---------------------------------------------------------------------------- live goal sync
+FRAME_NS = 1e9 / 30  # the synthetic camera's frame period at its default 30 fps
+
+
+def _synced_planner(clock: str = "lockstep", **planner: Any) -> tuple[PlannerService, _FakeService, _Pub]:
+    cfg = load_config(
+        PlannerConfig,
+        env={},
+        overrides={
+            "clock": clock,
+            "planner.cache_dir": str(ROOT / "out" / "models"),
+            "planner.live_goal_sync": True,
+            "goal_tracker.synthetic.clock": "arm",
+            **{f"planner.{k}": v for k, v in planner.items()},
+        },
+    )
+    p = PlannerService(cfg)
+    fake = _FakeService()
+    p.svc = fake  # type: ignore[assignment]
+    p._state_key = "psm/arm/state"
+    cmd, goal = _Pub(), _Pub()
+    p._cmd_pub, p._goal_pub = cmd, goal  # type: ignore[assignment]
+    return p, fake, cmd
+
+
+def _person(frame: int, valid: bool = True) -> Goal:
+    return Goal(name="person", stamp_ns=round(frame * FRAME_NS), valid=valid, frame_id="base",
+                position=Vec3(x=0.35, y=0.5, z=0.45))
+
+
+def _ticks(cmd: _Pub) -> list[int]:
+    return [ArmCommand.FromString(b).tick for b in cmd.sent]
+
+
+def test_live_goal_sync_answers_a_state_once_the_goal_of_its_frame_is_in() -> None:
+    p, _fake, cmd = _synced_planner()
+    assert p._live_names == ["person"]
+    p._on_state(_Sample(_state(0)))
+    p._on_state(_Sample(_state(0)))  # the arm offers state 0 again: it still waits
+    assert cmd.sent == []
+    p._on_goal(_person(0), "psm/goals/person")
+    assert _ticks(cmd) == [0] and p.waited_states == 1
+    for tick in range(1, 17):  # 2 ... 32 ms: frame 0 is the one due, its goal is in
+        p._on_state(_Sample(_state(tick)))
+    assert _ticks(cmd) == list(range(17))
+    p._on_state(_Sample(_state(17)))  # 34 ms: frame 1 (33.3 ms) is due
+    assert len(cmd.sent) == 17
+    p._on_goal(_person(1, valid=False), "psm/goals/person")  # no face in frame 1: still its goal
+    assert _ticks(cmd)[-1] == 17 and p.waited_states == 2
+    # A goal that arrives before its frame's state: the state is answered at once.
+    p._on_goal(_person(2), "psm/goals/person")
+    for tick in range(18, 51):
+        p._on_state(_Sample(_state(tick)))
+    # Up to 98 ms frame 2 (66.7 ms) is the one due; at 100 ms frame 3 is: tick 50 waits.
+    assert _ticks(cmd) == list(range(50))
+    p._on_goal(_person(3), "psm/goals/person")
+    assert _ticks(cmd)[-1] == 50
+    assert p.summary()["planner"]["live_goal_sync"]["wait_timeouts"] == 0
+
+
+def test_live_goal_sync_stops_waiting_when_the_tracker_is_gone_or_a_wait_runs_out() -> None:
+    p, _fake, cmd = _synced_planner(live_goal_wait_s=0.05)
+    p._on_tracker("goal_tracker", True)
+    p._on_state(_Sample(_state(0)))
+    assert cmd.sent == []
+    p._check_goal_wait()  # within the bound: still waiting
+    assert cmd.sent == []
+    import time
+
+    time.sleep(0.06)
+    p._check_goal_wait()
+    assert _ticks(cmd) == [0] and p.goal_wait_timeouts == 1
+    p._on_state(_Sample(_state(20)))  # paused until the next goal: answered at once
+    assert _ticks(cmd) == [0, 20]
+    p._on_goal(_person(1), "psm/goals/person")  # the sync resumes
+    p._on_state(_Sample(_state(40)))  # 80 ms: frame 2 due
+    assert len(cmd.sent) == 2
+    p._on_tracker("goal_tracker", False)  # gone: the parked state is answered, no more waits
+    assert _ticks(cmd) == [0, 20, 40]
+    p._on_state(_Sample(_state(60)))
+    assert _ticks(cmd)[-1] == 60
+
+
+def test_live_goal_sync_has_no_effect_in_realtime_and_needs_the_arm_clock() -> None:
+    p, _fake, cmd = _synced_planner("realtime")
+    p._on_state(_Sample(_state(0)))
+    assert _ticks(cmd) == [0] and p._frame_period is None
+    from services.bus.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"planner\.live_goal_sync: needs the synthetic camera's frames"):
+        load_config(PlannerConfig, env={}, overrides={"planner.live_goal_sync": True})
