@@ -454,7 +454,8 @@ class CellRun:
     def args(self, port: int, task_file: Path, cache_dir: Path, without: Sequence[str] = ()) -> list[str]:
         """``psm up`` arguments: the shipped stack without its router (and ``without``), on
         ``prefix``, connected to the router at 127.0.0.1:``port``, lockstep with the planner's
-        ``live_goal_sync``, everything under ``run_dir``."""
+        ``live_goal_sync`` (and the arm waiting up to 5 s for an answer), everything under
+        ``run_dir``."""
         values = [
             'clock="lockstep"',
             f'prefix="{self.prefix}"',
@@ -468,6 +469,10 @@ class CellRun:
             f'arm.stats_file="{self.run_dir / "arm.json"}"',
             f'planner.cache_dir="{cache_dir}"',
             "planner.live_goal_sync=true",
+            # The arm waits up to 5 s for each answer (0.5 s shipped): with two cells on two cores
+            # the camera and the tracker can take longer than 0.5 s for a frame, and an arm that
+            # steps on without an answer makes the run differ by design.
+            "arm.lockstep_timeout_s=5.0",
         ]
         return ["up", str(STACK_FILE), "--no-live", *(a for v in values for a in ("--set", v))]
 

@@ -99,7 +99,8 @@ class CameraSection(Section):
     )
     stall_timeout_s: float = Field(
         2.0, gt=0.0,
-        description="no frame for this long (wall clock) -> goal invalid",
+        description="no frame for this long (wall clock) -> goal invalid (realtime only: in lockstep "
+        "the planner's goal_timeout_s on the arm's clock covers a camera that stops)",
     )
 
     def check(self) -> None:

@@ -57,6 +57,9 @@ from services.threads import limit_blas_threads, limit_opencv_threads
 
 SERVICE_NAME = "goal_tracker"
 CAMERA_SERVICE_NAME = "camera_synth"
+#: Lockstep, frames on the arm's clock: the synthetic camera sends its last frame again after
+#: this long [s, wall clock] without a new one (the arm's time standing still).
+RESEND_S = 0.5
 STREAM_CAMERA_SERVICE_NAME = "camera"
 
 
@@ -316,9 +319,14 @@ class GoalTrackerService(ServiceApp):
 
     def loop(self, svc: Service) -> None:
         assert self.source is not None
+        # In lockstep time is the arm's: a camera without frames while the arm waits is not
+        # stalled, and a stall declared by the wall clock would make the goals depend on how
+        # fast the processes started (the planner's goal_timeout_s, on the arm's clock, still
+        # loses a goal whose frames stop).
+        stall_s = None if svc.config.clock == "lockstep" else self.sec.camera.stall_timeout_s
         self.exit_code = _loop(svc, self.sec, self.tracker, self.source, self.faces_pub,
                                self.annotations_pub, self.goal_pub, self.pose_pub, self.image_pub,
-                               self.max_frames)
+                               self.max_frames, stall_s)
 
     def teardown(self, svc: Service) -> None:
         if self.source is not None:
@@ -337,7 +345,10 @@ def _loop(
     pose_pub: Any,
     image_pub: Any,
     max_frames: int,
+    stall_s: float | None,
 ) -> int:
+    """Analyse frames until the stop, the source's end or ``max_frames``; a source without a
+    frame for ``stall_s`` [s, wall clock] gets the goal invalid (None: never)."""
     cam = sec.camera
     seq = 0
     last_image_ns: int | None = None
@@ -359,18 +370,20 @@ def _loop(
             return 2
         now = time.monotonic()
         if frame is None:
-            if not stalled and now - last_frame_wall > cam.stall_timeout_s:
+            if stall_s is not None and not stalled and now - last_frame_wall > stall_s:
                 stalled = True
                 _publish_invalid(
                     goal_pub,
                     seq,
                     sec,
                     last_stamp,
-                    f"camera stalled: no frame for {cam.stall_timeout_s:.1f} s",
+                    f"camera stalled: no frame for {stall_s:.1f} s",
                 )
                 seq += 1
             continue
         last_frame_wall, stalled = now, False
+        if frames and frame.stamp_ns == last_stamp:
+            continue  # a copy of the frame analysed last (a lockstep camera sending it again)
         try:
             out = _track_frame(tracker, frame)
         except Exception as exc:
@@ -453,6 +466,7 @@ class SyntheticCameraService(ServiceApp):
         self.sec = config.goal_tracker
         self.limit = max_frames or self.sec.synthetic.frames
         self.sent = 0
+        self.resent = 0
         self.source: Any = None
         limit_opencv_threads(1)
 
@@ -474,6 +488,12 @@ class SyntheticCameraService(ServiceApp):
 
     def loop(self, svc: Service) -> None:
         cam, source, limit = self.sec.camera, self.source, self.limit
+        # Lockstep on the arm's clock: while the arm's time stands still the last frame goes out
+        # again every RESEND_S (a tracker that subscribed after it was sent gets it; the tracker
+        # analyses a frame once, whatever the copies).
+        resend = svc.config.clock == "lockstep" and self.sec.synthetic.clock == "arm"
+        last: Any = None
+        last_put = 0.0
         while not svc.stop_event.is_set() and not (limit and self.sent >= limit):
             try:
                 frame = source.read(0.2)
@@ -481,13 +501,19 @@ class SyntheticCameraService(ServiceApp):
                 svc.log.info("source ended", extra={"source": source.description})
                 break
             if frame is None:
+                if resend and last is not None and time.monotonic() - last_put >= RESEND_S:
+                    self.pub.put(last)
+                    last_put = time.monotonic()
+                    self.resent += 1
                 continue
-            self.pub.put(jpeg_image(frame.image, frame.stamp_ns, cam.camera_id, cam.jpeg_quality))
+            last = jpeg_image(frame.image, frame.stamp_ns, cam.camera_id, cam.jpeg_quality)
+            self.pub.put(last)
+            last_put = time.monotonic()
             self.sent += 1
 
     def teardown(self, svc: Service) -> None:
         dropped = getattr(self.source, "dropped", 0)
-        svc.log.info("camera done", extra={"frames": self.sent, "dropped": dropped})
+        svc.log.info("camera done", extra={"frames": self.sent, "dropped": dropped, "resent": self.resent})
 
 
 class StreamCameraService(SyntheticCameraService):
