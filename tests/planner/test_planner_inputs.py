@@ -212,15 +212,13 @@ class _Pub:
         self.sent.append(msg)
 
 
-def _watched_planner(clock: str) -> tuple[PlannerService, _FakeService, _Pub, _Pub]:
+def _wired_planner(clock: str, **overrides: Any) -> tuple[PlannerService, _FakeService, _Pub, _Pub]:
+    """A planner on ``clock`` with ``overrides``, its bus replaced by fakes: ``(planner, service,
+    command publisher, goal publisher)``."""
     cfg = load_config(
         PlannerConfig,
         env={},
-        overrides={
-            "clock": clock,
-            "planner.cache_dir": str(ROOT / "out" / "models"),
-            "planner.collision_check": "required",
-        },
+        overrides={"clock": clock, "planner.cache_dir": str(ROOT / "out" / "models"), **overrides},
     )
     p = PlannerService(cfg)
     fake = _FakeService()
@@ -229,6 +227,10 @@ def _watched_planner(clock: str) -> tuple[PlannerService, _FakeService, _Pub, _P
     cmd, goal = _Pub(), _Pub()
     p._cmd_pub, p._goal_pub = cmd, goal  # type: ignore[assignment]
     return p, fake, cmd, goal
+
+
+def _watched_planner(clock: str) -> tuple[PlannerService, _FakeService, _Pub, _Pub]:
+    return _wired_planner(clock, **{"planner.collision_check": "required"})
 
 
 def _prediction(tick: int, **fields: Any) -> Any:
@@ -363,23 +365,11 @@ FRAME_NS = 1e9 / 30  # the synthetic camera's frame period at its default 30 fps
 
 
 def _synced_planner(clock: str = "lockstep", **planner: Any) -> tuple[PlannerService, _FakeService, _Pub]:
-    cfg = load_config(
-        PlannerConfig,
-        env={},
-        overrides={
-            "clock": clock,
-            "planner.cache_dir": str(ROOT / "out" / "models"),
-            "planner.live_goal_sync": True,
-            "goal_tracker.synthetic.clock": "arm",
-            **{f"planner.{k}": v for k, v in planner.items()},
-        },
+    p, fake, cmd, _goal = _wired_planner(
+        clock,
+        **{"planner.live_goal_sync": True, "goal_tracker.synthetic.clock": "arm"},
+        **{f"planner.{k}": v for k, v in planner.items()},
     )
-    p = PlannerService(cfg)
-    fake = _FakeService()
-    p.svc = fake  # type: ignore[assignment]
-    p._state_key = "psm/arm/state"
-    cmd, goal = _Pub(), _Pub()
-    p._cmd_pub, p._goal_pub = cmd, goal  # type: ignore[assignment]
     return p, fake, cmd
 
 
