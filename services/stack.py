@@ -59,6 +59,7 @@ __all__ = [
     "StackSection",
     "config_class",
     "load_stack",
+    "real_camera_overrides",
     "use_camera",
 ]
 
@@ -334,3 +335,12 @@ def use_camera(stack: Stack) -> Stack:
         keep.append(p)
     stack.processes = keep
     return stack
+
+
+def real_camera_overrides(stack: Stack) -> dict[str, Any]:
+    """The overrides a stack on a real camera (:func:`use_camera`) gives its processes besides
+    the camera's source: a real camera's frames are not on the arm's clock, so a planner cannot
+    wait for their goals (``planner.live_goal_sync`` off, where the stack has a planner)."""
+    if any(hasattr(cfg, "planner") for cfg in stack.configs.values()):
+        return {"planner.live_goal_sync": False}
+    return {}

@@ -12,7 +12,7 @@ __all__ = ["register"]
 
 def _cmd_up(args: argparse.Namespace) -> int:
     from services.bus.config import ConfigError, env_var_name, parse_override, set_items
-    from services.stack import DEFAULT_STACK, load_stack, use_camera
+    from services.stack import DEFAULT_STACK, load_stack, real_camera_overrides, use_camera
     from services.supervisor import run_stack
 
     overrides: dict[str, Any] = dict(set_items(args.set))
@@ -30,10 +30,7 @@ def _cmd_up(args: argparse.Namespace) -> int:
     parsed = {k: parse_override(v) for k, v in overrides.items()}
     stack = load_stack(args.stack or DEFAULT_STACK, overrides=parsed, view=args.view)
     if args.camera is not None:
-        use_camera(stack)
-        if any(hasattr(c, "planner") for c in stack.configs.values()):
-            # A real camera's frames are not on the arm's clock: the planner cannot wait for them.
-            parsed["planner.live_goal_sync"] = False
+        parsed.update(real_camera_overrides(use_camera(stack)))
     if args.record and not any(p.command[:1] == ["record"] for p in stack.processes):
         raise ConfigError("recorder.output", "--record needs a recorder process in the stack")
     # The processes read the overrides from their environment: a string as itself, anything

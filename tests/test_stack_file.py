@@ -68,7 +68,7 @@ def test_errors_name_the_process_and_field(
     assert str(ei.value).startswith(expected), str(ei.value)
 
 
-def test_a_real_camera_replaces_the_synthetic_one() -> None:
+def test_a_real_camera_replaces_the_synthetic_one(tmp_path: Path) -> None:
     from services.stack import DEFAULT_STACK, load_stack, use_camera
 
     stack = use_camera(load_stack(DEFAULT_STACK, overrides={"goal_tracker.camera.source": "device"}, env={}))
@@ -77,3 +77,10 @@ def test_a_real_camera_replaces_the_synthetic_one() -> None:
     (tracker,) = [p for p in stack.processes if p.name == "goal_tracker"]
     assert tracker.command == ["track"]
     assert stack.configs["goal_tracker"].goal_tracker.camera.source == "device"  # type: ignore[attr-defined]
+    # The planner cannot wait for a real camera's goals on the arm's clock.
+    from services.stack import real_camera_overrides
+
+    assert real_camera_overrides(stack) == {"planner.live_goal_sync": False}
+    no_planner = tmp_path / "no_planner.toml"
+    no_planner.write_text(BASE + "[[stack.processes]]\nname = 'goal_tracker'\ncommand = ['track']\n")
+    assert real_camera_overrides(use_camera(load_stack(no_planner, env={}))) == {}

@@ -291,10 +291,9 @@ class PlannerService(ServiceApp):
                 # A later state supersedes a parked one (the arm stepped without an answer): it
                 # is answered with what is known. The same state offered again (before the first
                 # answer the arm repeats state 0) waits on.
-                superseded = self._parked is not None and tick > self._parked[2]
-                held = self._parked is not None and not superseded
-                parked_at = self._parked[4] if held and self._parked is not None else time.monotonic()
-                self._parked = None
+                prev, self._parked = self._parked, None
+                superseded = prev is not None and tick > prev[2]
+                parked_at = prev[4] if prev is not None and not superseded else time.monotonic()
                 now_ns = int(st.sim_time_ns or st.stamp_ns)
                 if (
                     not superseded
