@@ -266,10 +266,8 @@ class _Elements:
         rt_h = np.empty((4, 3 * E))
         rt_h[:3] = self.rotation.transpose(1, 2, 0).reshape(3, 3 * E)
         rt_h[3] = -np.einsum("eia,ei->ae", self.rotation, self.centre).reshape(3 * E)
-        # Parameter bounds of the test: rows 0-2 the slabs, 3 the quadric, 4 the segment [0, 1].
-        bounds = np.empty((2, 5, E))
-        bounds[0, 4] = 0.0
-        bounds[1, 4] = 1.0
+        # Parameter bounds of the test: rows 0-2 the slabs, 3 the quadric (filled by _narrow).
+        bounds = np.empty((2, 4, E))
         for name, arr in (("rt_h", rt_h), ("bounds_template", bounds),
                           ("half_cm", np.ascontiguousarray(self.half.T)),
                           ("radial_cm", np.ascontiguousarray(self.radial.T))):
@@ -466,20 +464,20 @@ _ROOT_SIGN = np.array([1.0, -1.0]).reshape(2, 1)
 
 
 def _narrow(p: FloatArray, d: FloatArray, el: _Elements) -> tuple[
-        FloatArray, FloatArray, FloatArray, FloatArray]:
+        FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]:
     """Exact test of the segment ``p + t d`` (``t ∈ [0, 1]``) against every element's open shape.
 
     Each shape is ``{x : |x_a| < h_a for a = 0..2, Σ w_a x_a² < r²}`` in its local frame, so the
     line is inside over ``t_in < t < t_out`` with ``t_in`` the largest entry parameter of the
     three slabs and the quadric and ``t_out`` the smallest exit; the segment's own bounds 0 and
-    1 are a fifth constraint. Call it under ``np.errstate(divide="ignore", invalid="ignore")``.
+    1 clip that to ``lo < t < hi``. Call it under ``np.errstate(divide="ignore", invalid="ignore")``.
 
-    Returns ``lo (E,)`` = ``max(t_in, 0)``, ``hi (E,)`` = ``min(t_out, 1)``, ``B (2, 5, E)`` the
-    entry (``B[0]``) and exit (``B[1]``) parameters of the constraints (rows: three slabs, the
-    quadric, the segment) and ``M (2, 3, E)`` the local start ``Rᵀ (p − c)`` (``M[0]``) and
-    direction ``Rᵀ d`` (``M[1]``), component-major. A line that misses a quadric, or lies in a
-    slab's boundary plane, gets NaN parameters: every comparison with them is False, i.e. a miss
-    (a grazing line).
+    Returns ``t_in (E,)``, ``t_out (E,)``, ``lo (E,)`` = ``max(t_in, 0)``, ``hi (E,)`` =
+    ``min(t_out, 1)``, ``B (2, 4, E)`` the entry (``B[0]``) and exit (``B[1]``) parameters of the
+    constraints (rows: three slabs, the quadric) and ``M (2, 3, E)`` the local start
+    ``Rᵀ (p − c)`` (``M[0]``) and direction ``Rᵀ d`` (``M[1]``), component-major. A line that
+    misses a quadric, or lies in a slab's boundary plane, gets NaN parameters: every comparison
+    with them is False, i.e. a miss (a grazing line).
     """
     E = el.owner.shape[0]
     pd = np.zeros((2, 4))
@@ -503,7 +501,9 @@ def _narrow(p: FloatArray, d: FloatArray, el: _Elements) -> tuple[
     a = G[1, 1] + 1e-300
     sq = np.sqrt(b * b - a * (G[0, 0] - el.radius2))
     np.multiply(b + _ROOT_SIGN * sq, -1.0 / a, out=B[:, 3])
-    return B[0].max(axis=0), B[1].min(axis=0), B, M
+    t_in = B[0].max(axis=0)
+    t_out = B[1].min(axis=0)
+    return t_in, t_out, np.maximum(t_in, 0.0), np.minimum(t_out, 1.0), B, M
 
 
 def _entry_normal(f: list[float], g: list[float], t: float, slab_entries: list[float], quadric_last: bool,
@@ -583,7 +583,7 @@ def segment_check(
             return _NO_HIT
         el = el.subset(cand)
     with np.errstate(divide="ignore", invalid="ignore"):
-        lo, hi, B, M = _narrow(p, d, el)
+        t_in, t_out, lo, hi, B, M = _narrow(p, d, el)
         if L > POINT_TOL_M:
             # Hit: overlap of [0, 1] with (t_in, t_out) longer than the grazing tolerance (NaN
             # parameters compare False: a miss); the first entry along the segment wins.
@@ -600,14 +600,14 @@ def segment_check(
         tau = GRAZE_TOL_M / L if L > POINT_TOL_M else 0.0
         if check_inside:
             # A start inside wins over entries at fraction 0.
-            inside_idx = np.flatnonzero((B[0, :4].max(axis=0) < -tau) & (B[1, :4].min(axis=0) > tau))
+            inside_idx = np.flatnonzero((t_in < -tau) & (t_out > tau))
             if inside_idx.shape[0]:
                 j = int(inside_idx[0])
             elif L <= POINT_TOL_M:
                 return _NO_HIT
-    entries = B[0, :4, j].tolist()  # slabs, quadric (never NaN for a winner: NaN compares False)
+    entries = B[0, :, j].tolist()  # slabs, quadric (never NaN for a winner: NaN compares False)
     t_j = max(entries)
-    inside = t_j < -tau and float(B[1, :4, j].min()) > tau
+    inside = t_j < -tau and float(t_out[j]) > tau
     # The winner only, in plain floats (3-vectors are cheaper in Python than in numpy).
     f, g = M[:, :, j].tolist()
     owner = int(el.owner[j])

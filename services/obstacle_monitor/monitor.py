@@ -235,7 +235,7 @@ class ObstacleMonitor:
                     self._clearance_dirty = False
                 t0 = time.perf_counter_ns()
                 q_arr, dq_arr = np.asarray(q, dtype=float), np.asarray(dq, dtype=float)
-                res = clr.check(q_arr)
+                res = clr.check(q_arr, per_link=False)  # the prediction carries the closest link only
                 bound = clr.speed_bound(q_arr, dq_arr)
                 self.clearance_us.append((time.perf_counter_ns() - t0) * 1e-3)
                 if len(self.clearance_us) > 100_000:

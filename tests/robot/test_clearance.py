@@ -148,6 +148,29 @@ def test_broad_phase_equals_brute_force(robot: RobotModel, cutoff: float) -> Non
         assert np.all(fast.per_link[finite] <= cutoff)
 
 
+@pytest.mark.parametrize("cutoff", [math.inf, 0.3])
+def test_the_smallest_distance_alone_equals_the_per_link_check(robot: RobotModel, cutoff: float) -> None:
+    rng = np.random.default_rng(11)
+    arm = ArmClearance(robot, margin_m=0.02, cutoff_m=cutoff)
+    fewer = 0
+    for trial in range(20):
+        arm.set_obstacles(_random_obstacles(rng, int(rng.integers(1, 25))))
+        q = rng.uniform(robot.limits.lower, robot.limits.upper)
+        full, alone = arm.check(q), arm.check(q, per_link=False)
+        assert alone.min_distance_m == full.min_distance_m, f"trial {trial}"
+        assert (alone.link, alone.obstacle_id) == (full.link, full.obstacle_id), f"trial {trial}"
+        np.testing.assert_array_equal(alone.witness_arm, full.witness_arm)
+        np.testing.assert_array_equal(alone.witness_obstacle, full.witness_obstacle)
+        assert alone.pairs_evaluated <= full.pairs_evaluated
+        fewer += alone.pairs_evaluated < full.pairs_evaluated
+        if full.link:
+            closest = full.link_names.index(full.link)
+            assert alone.per_link[closest] == full.per_link[closest]
+            others = np.delete(alone.per_link, closest)
+            assert np.isnan(others).all()
+    assert fewer >= 5  # the global bound prunes pairs the per-link one must evaluate
+
+
 def test_penetration_is_not_positive_and_the_margin_subtracts(robot: RobotModel) -> None:
     q = robot.named_poses["ready"]
     plain = ArmClearance(robot, margin_m=0.0, cutoff_m=math.inf)
