@@ -588,7 +588,7 @@ def segment_check(
             # Hit: overlap of [0, 1] with (t_in, t_out) longer than the grazing tolerance (NaN
             # parameters compare False: a miss); the first entry along the segment wins.
             key = np.where(hi - lo > GRAZE_TOL_M / L, lo, np.inf)
-            j = int(np.argmin(key))
+            j = int(key.argmin())
             if key[j] == np.inf:
                 return _NO_HIT
             check_inside = key[j] == 0.0
@@ -600,7 +600,7 @@ def segment_check(
         tau = GRAZE_TOL_M / L if L > POINT_TOL_M else 0.0
         if check_inside:
             # A start inside wins over entries at fraction 0.
-            inside_idx = np.flatnonzero((t_in < -tau) & (t_out > tau))
+            inside_idx = ((t_in < -tau) & (t_out > tau)).nonzero()[0]
             if inside_idx.shape[0]:
                 j = int(inside_idx[0])
             elif L <= POINT_TOL_M:

@@ -34,6 +34,11 @@ REASON_DUPLICATE = "duplicate_id"
 REASON_UNKNOWN = "unknown_id"
 
 
+#: The default of the vector fields of :class:`Prediction` (read-only: shared by every instance).
+_NAN3 = np.full(3, np.nan)
+_NAN3.setflags(write=False)
+
+
 @dataclass
 class Prediction:
     """The monitor's answer to one arm state (the fields of ``CollisionPrediction``).
@@ -48,10 +53,10 @@ class Prediction:
     collision: bool = False
     obstacle_id: str = ""
     inside: bool = False
-    entry_point: NDArray[np.float64] = field(default_factory=lambda: np.full(3, np.nan))
+    entry_point: NDArray[np.float64] = field(default_factory=lambda: _NAN3)
     entry_distance_m: float = math.inf
     time_to_collision_s: float = math.inf
-    stop_position: NDArray[np.float64] = field(default_factory=lambda: np.full(3, np.nan))
+    stop_position: NDArray[np.float64] = field(default_factory=lambda: _NAN3)
     min_clearance_m: float = math.inf
     closest_link: str = ""
     clearance_obstacle_id: str = ""

@@ -75,13 +75,13 @@ def prediction_message(p: Prediction, seq: int, out: CollisionPrediction) -> Col
     out.obstacle_count = p.obstacle_count
     if p.goal is not None:
         out.goal_known = True
-        out.goal.x, out.goal.y, out.goal.z = (float(c) for c in p.goal)
+        out.goal.x, out.goal.y, out.goal.z = p.goal.tolist()
     out.collision, out.obstacle_id, out.inside = p.collision, p.obstacle_id, p.inside
     if p.collision:
-        out.entry_point.x, out.entry_point.y, out.entry_point.z = (float(c) for c in p.entry_point)
+        out.entry_point.x, out.entry_point.y, out.entry_point.z = p.entry_point.tolist()
     out.entry_distance_m = p.entry_distance_m
     out.time_to_collision_s = p.time_to_collision_s
-    out.stop_position.extend(float(c) for c in p.stop_position)
+    out.stop_position.extend(p.stop_position.tolist())
     out.min_clearance_m = p.min_clearance_m
     out.closest_link, out.clearance_obstacle_id = p.closest_link, p.clearance_obstacle_id
     out.clearance_tick = max(0, p.clearance_tick)
