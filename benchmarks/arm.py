@@ -336,7 +336,9 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
     lines = [
         "# Arm benchmark",
         "",
-        f"`python -m benchmarks.arm{' --quick' if res['quick'] else ''}` on {res['machine']} "
+        f"`python -m benchmarks.arm{' --quick' if res['quick'] else ''}"
+        f"{' --cpu-latency-us ' + str(res['cpu_latency_us']) if res.get('cpu_latency_us', -1) >= 0 else ''}` "
+        f"on {res['machine']} "
         f"({res['cpus']} CPUs), {res['date']}. Load average (1 min) at start "
         f"{res['loadavg_start']}, at end {res['loadavg_end']}"
         + (
@@ -501,15 +503,34 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--out", type=Path, default=RESULTS, help="output directory (default: benchmarks/results)"
     )
+    parser.add_argument(
+        "--cpu-latency-us", type=int, default=-1,
+        help="hold the CPUs' wake-up latency at this many us for the whole run, as "
+        "arm.cpu_latency_us does (system-wide: the references run under it too; -1 = off)",
+    )
     args = parser.parse_args(argv)
     if args.pong:
         return _pong(args.pong, args.pong_seconds, args.pong_low_latency)
+    from services.threads import CpuLatencyRequest
+
+    latency = CpuLatencyRequest(args.cpu_latency_us)
+    if latency.problem:
+        print(f"benchmarks.arm: {latency.problem}", file=sys.stderr)
+        return 2
+    try:
+        return _run(args)
+    finally:
+        latency.close()
+
+
+def _run(args: argparse.Namespace) -> int:
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
     quick = args.quick
     seconds = 10 if quick else 60
     res: dict[str, Any] = {
         "quick": quick,
+        "cpu_latency_us": args.cpu_latency_us,
         "machine": f"{platform.system()} {platform.machine()} Python {platform.python_version()}",
         "cpus": os.cpu_count(),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

@@ -24,7 +24,12 @@ not published within one dt of their schedule).
 
 The arm and the probe run at the ``SCHED_FIFO`` priority of ``configs/stack.toml``'s
 ``arm.rt_priority`` (how the stack deploys its control loop; ``--rt-priority`` overrides); the
-whole stack is also run once at normal scheduling, for comparison.
+whole stack is also run once at normal scheduling, for comparison. Then every scenario runs
+again with the CPUs' wake-up latency held at 0 µs for its whole duration
+(:class:`services.threads.CpuLatencyRequest`, the request ``arm.cpu_latency_us = 0`` makes:
+idle CPUs poll instead of halting; system-wide, so the platform reference and the timer loop
+run under it too); ``--no-latency-round`` skips that round. The targets are judged on the
+first round (the stack file's defaults); the second is reported beside it.
 
 Targets: (1) arm + probe: the arm ≤ 15 % of one core; (2) the whole stack ≤ 70 % of one core in
 total; (3) with the stack running, the arm's missed ticks ≤ 2× the bare timer loop's misses.
@@ -48,6 +53,7 @@ from typing import Any
 from benchmarks.arm import _load, bench_timer
 from services.stack import load_stack
 from services.supervisor import ManagedProcess, StackFailureError, Supervisor, cpu_seconds, free_port
+from services.threads import CpuLatencyRequest
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
@@ -174,10 +180,21 @@ def deployed_rt_priority() -> int:
 
 
 def run_scenario(
-    name: str, seconds: float, warmup_s: float, fps: float, rt_priority: int = 0
+    name: str, seconds: float, warmup_s: float, fps: float, rt_priority: int = 0, cpu_latency_us: int = -1
 ) -> dict[str, Any]:
     """Run one scenario: start it, warm up, measure CPU over ``seconds``, stop; returns the
-    per-process CPU, the arm's loop statistics and the bare timer reference."""
+    per-process CPU, the arm's loop statistics and the bare timer reference. ``cpu_latency_us``
+    ≥ 0: the CPUs' wake-up latency is held at that many µs while the scenario runs."""
+    latency = CpuLatencyRequest(cpu_latency_us)
+    if latency.problem:
+        raise SystemExit(f"benchmarks.stack: {latency.problem} (--no-latency-round skips that round)")
+    try:
+        return _run_scenario(name, seconds, warmup_s, fps, rt_priority) | {"cpu_latency_us": cpu_latency_us}
+    finally:
+        latency.close()
+
+
+def _run_scenario(name: str, seconds: float, warmup_s: float, fps: float, rt_priority: int) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix=f"stack-{name}-") as tmp:
         workdir = Path(tmp)
         timer_out = workdir / "timer.json"
@@ -304,10 +321,11 @@ def miss_ratio(scenario: dict[str, Any]) -> dict[str, Any]:
             "ok": ratio <= MISS_RATIO_TARGET}
 
 
-def verdicts(res: dict[str, Any]) -> dict[str, Any]:
-    """The three targets, each with the figures it is judged on."""
-    a, s = res["scenarios"]["arm"], res["scenarios"]["stack"]
-    plat = res["scenarios"].get("platform", {"cpu_pct": {}, "services_cpu_pct": float("nan")})
+def verdicts(res: dict[str, Any], suffix: str = "") -> dict[str, Any]:
+    """The three targets, each with the figures it is judged on, for the scenarios of one round
+    (``suffix`` ``""``: the stack file's defaults; ``LATENCY_SUFFIX``: the latency held)."""
+    a, s = res["scenarios"]["arm" + suffix], res["scenarios"]["stack" + suffix]
+    plat = res["scenarios"].get("platform" + suffix, {"cpu_pct": {}, "services_cpu_pct": float("nan")})
     arm_pct = a["cpu_pct"].get("arm", float("nan"))
     null_pct = plat["cpu_pct"].get("null_arm", float("nan"))
     stack_pct = s["services_cpu_pct"]
@@ -321,28 +339,24 @@ def verdicts(res: dict[str, Any]) -> dict[str, Any]:
                       "ok": stack_pct <= STACK_TARGET_PCT},
         "missed_ticks": miss_ratio(s),
     }
-    if "stack_normal" in res["scenarios"]:
-        out["missed_ticks_normal_scheduling"] = miss_ratio(res["scenarios"]["stack_normal"])
+    if "stack_normal" + suffix in res["scenarios"]:
+        out["missed_ticks_normal_scheduling"] = miss_ratio(res["scenarios"]["stack_normal" + suffix])
     return out
 
 
-def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
-    """Write ``stack.json`` and ``stack.md`` into ``out``."""
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "stack.json").write_text(json.dumps(res, indent=2, default=str))
-    v = res["verdicts"]
+#: Key suffix of the scenarios run with the CPUs' wake-up latency held at 0 µs.
+LATENCY_SUFFIX = "_lat0"
+
+
+def _round_lines(res: dict[str, Any], suffix: str) -> list[str]:
+    """The process, arm-loop and target tables of one round of scenarios."""
     sc = res["scenarios"]
+    v = res["verdicts" + suffix]
     names = ["router", "null_arm", "arm", "probe", "camera", "tracker", "recorder"]
-    cols = [k for k in ("platform", "arm", "stack") if k in sc]
+    cols = [k + suffix for k in ("platform", "arm", "stack") if k + suffix in sc]
     heads = {"platform": "(p) platform", "arm": "(a) arm + probe", "stack": "(b) whole stack"}
     lines = [
-        "# Stack benchmark: CPU per process and the arm's realtime ticks",
-        "",
-        f"{res['date']} · {res['machine']} · {res['cpus']} CPUs · {res['seconds']} s windows "
-        f"after {res['warmup_s']} s warm-up · `python -m benchmarks.stack` (method: module "
-        "docstring). CPU = utime + stime from `/proc/<pid>/stat` over the window, % of one core.",
-        "",
-        "| process | " + " | ".join(heads[k] for k in cols) + " |",
+        "| process | " + " | ".join(heads[k.removesuffix(suffix)] for k in cols) + " |",
         "|---|" + "---:|" * len(cols),
     ]
     for n in [*names, "bare timer"]:
@@ -350,24 +364,26 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
         lines.append(f"| {n} | " + " | ".join(cells) + " |")
     totals = " | ".join(f"{sc[k]['services_cpu_pct']:.1f}" for k in cols)
     lines.append(f"| **services total** | {totals} |")
+    a, b = sc["arm" + suffix], sc["stack" + suffix]
     lines += ["", "| arm loop | (a) | (b) |", "|---|---:|---:|"]
     for key in ("published_per_s", "missed_ticks", "skipped_ticks", "reanchors", "late_commands"):
         cells = []
-        for k in ("arm", "stack"):
-            val = sc[k]["arm"].get(key)
+        for run in (a, b):
+            val = run["arm"].get(key)
             cells.append("–" if val is None else (f"{val:.1f}" if isinstance(val, float) else str(val)))
         lines.append(f"| {key} | {cells[0]} | {cells[1]} |")
-    for k in ("arm", "stack"):
-        t = sc[k]["timer"]
-        sc[k]["_timer_txt"] = (f"{t.get('over_2ms', '–')} of {t.get('deadlines', '–')} "
-                               f"(p50 {t.get('p50_us', float('nan')):.0f} µs, max "
-                               f"{t.get('max_us', float('nan')) / 1e3:.1f} ms)")
-    lines.append(f"| bare timer: deadlines missed by > 2 ms | {sc['arm']['_timer_txt']} | "
-                 f"{sc['stack']['_timer_txt']} |")
+
+    def timer_txt(t: dict[str, Any]) -> str:
+        p50, worst = t.get("p50_us", float("nan")), t.get("max_us", float("nan")) / 1e3
+        return f"{t.get('over_2ms', '–')} of {t.get('deadlines', '–')} (p50 {p50:.0f} µs, max {worst:.1f} ms)"
+
+    lines.append(
+        f"| bare timer: deadlines missed by > 2 ms | {timer_txt(a['timer'])} | {timer_txt(b['timer'])} |"
+    )
     m = v["missed_ticks"]
 
-    def ok(b: bool) -> str:
-        return "**met**" if b else "**not met**"
+    def ok(flag: bool) -> str:
+        return "**met**" if flag else "**not met**"
 
     lines += [
         "",
@@ -392,10 +408,38 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
         ),
         "",
         "Load average (1 min) before/after the windows: "
-        + ", ".join(f"{k} {sc[k]['loadavg']}" for k in cols) + ".",
+        + ", ".join(f"{k.removesuffix(suffix)} {sc[k]['loadavg']}" for k in cols) + ".",
     ]
-    for k in ("arm", "stack"):
-        sc[k].pop("_timer_txt", None)
+    return lines
+
+
+def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
+    """Write ``stack.json`` and ``stack.md`` into ``out``."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "stack.json").write_text(json.dumps(res, indent=2, default=str))
+    lines = [
+        "# Stack benchmark: CPU per process and the arm's realtime ticks",
+        "",
+        f"{res['date']} · {res['machine']} · {res['cpus']} CPUs · {res['seconds']} s windows "
+        f"after {res['warmup_s']} s warm-up · `python -m benchmarks.stack` (method: module "
+        "docstring). CPU = utime + stime from `/proc/<pid>/stat` over the window, % of one core.",
+        "",
+        "## The stack file's defaults (the targets are judged here)",
+        "",
+        *_round_lines(res, ""),
+    ]
+    if "verdicts" + LATENCY_SUFFIX in res:
+        lines += [
+            "",
+            "## The CPUs' wake-up latency held at 0 µs (`arm.cpu_latency_us = 0`)",
+            "",
+            "The same scenarios with the PM QoS request held for each one's whole duration: idle CPUs "
+            "poll instead of halting (system-wide: the platform reference and the timer loop run under "
+            "it too). On a virtual machine a halted virtual CPU is resumed by the hypervisor when a "
+            "timer or a packet wakes it; polling avoids that and keeps the caches warm.",
+            "",
+            *_round_lines(res, LATENCY_SUFFIX),
+        ]
     (out / "stack.md").write_text("\n".join(lines) + "\n")
 
 
@@ -412,6 +456,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timer", type=float, default=0.0, help=argparse.SUPPRESS)
     ap.add_argument("--timer-out", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--null-arm", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--no-latency-round", action="store_true",
+                    help="skip the second round with the CPUs' wake-up latency held at 0 us")
     ap.add_argument("--rt-priority", type=int, default=None,
                     help="SCHED_FIFO priority of the arm and the probe (default: configs/stack.toml's)")
     args, rest = ap.parse_known_args(argv)
@@ -442,11 +488,15 @@ def main(argv: list[str] | None = None) -> int:
     runs = [(name, name, rt) for name in SCENARIOS]
     if rt:
         runs.append(("stack_normal", "stack", 0))  # the same stack at normal scheduling
-    for key, name, prio in runs:
-        print(f"scenario {key} ...", flush=True)
-        res["scenarios"][key] = run_scenario(name, seconds, args.warmup, args.fps, prio)
-        print(json.dumps(res["scenarios"][key]["cpu_pct"]), flush=True)
-    res["verdicts"] = verdicts(res)
+    rounds = [("", -1)] + ([] if args.no_latency_round else [(LATENCY_SUFFIX, 0)])
+    for suffix, latency_us in rounds:
+        for key, name, prio in runs:
+            print(f"scenario {key + suffix} ...", flush=True)
+            res["scenarios"][key + suffix] = run_scenario(
+                name, seconds, args.warmup, args.fps, prio, latency_us
+            )
+            print(json.dumps(res["scenarios"][key + suffix]["cpu_pct"]), flush=True)
+        res["verdicts" + suffix] = verdicts(res, suffix)
     write_report(res, args.out)
     print((args.out / "stack.md").read_text())
     return 0

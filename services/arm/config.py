@@ -52,6 +52,12 @@ class ArmSection(ArmSimConfig, RobotDescription):
     rt_priority: int = Field(
         0, ge=0, le=99, description="SCHED_FIFO priority of the arm process, 1-99 (0 = normal scheduling)"
     )
+    cpu_latency_us: int = Field(
+        -1, ge=-1, le=100_000,
+        description="while the arm runs, keep every CPU's wake-up latency at most this [us] (PM QoS, "
+        "/dev/cpu_dma_latency; 0: idle CPUs poll instead of halting, which costs power; needs root); "
+        "-1 = the machine's idle states apply",
+    )
     watch_services: StrList = Field(
         default_factory=list,
         description="services whose liveliness loss drops the held command (brake at once)",

@@ -58,7 +58,7 @@ from services.robot.protocol import (
     command_from_message,
     frame_transforms,
 )
-from services.threads import limit_blas_threads, set_realtime_priority
+from services.threads import CpuLatencyRequest, limit_blas_threads, set_realtime_priority
 
 SERVICE_NAME = "arm"
 
@@ -201,6 +201,7 @@ class ArmService(ServiceApp):
         # Before the bus opens, so that Zenoh's threads (which step the realtime arm when a
         # command arrives) inherit the scheduling class.
         self._rt_problem = set_realtime_priority(section.rt_priority, config.clock)
+        self._cpu_latency = CpuLatencyRequest(section.cpu_latency_us)
         self._tf_every = max(1, round(1e9 / (rate * self.dt_ns))) if rate > 0 else 0
         self.model: ArmModel | None = None
         if section.model != "off":
@@ -214,6 +215,11 @@ class ArmService(ServiceApp):
         self.keys = svc.keys
         if self._rt_problem:
             svc.log.warning(self._rt_problem + "; running with normal scheduling")
+        if self._cpu_latency.problem:
+            svc.log.warning(self._cpu_latency.problem + "; the machine's CPU idle states apply")
+        elif self._cpu_latency.held:
+            svc.log.info("CPU wake-up latency held", extra={"latency_us": self._cpu_latency.latency_us})
+        svc.on_close(self._cpu_latency.close)
         self._state_pub = svc.publisher(self.keys.arm_state)
         self._tf_pub = svc.publisher(self.keys.arm_transforms) if self._tf_every else None
         self._model_pub = svc.publisher(self.keys.arm_model) if self.model is not None else None

@@ -178,3 +178,25 @@ def test_lockstep_sim_time_starts_at_zero() -> None:
     assert not th.is_alive()
     assert svc.sim.time_origin_ns == 0
     assert stamps and set(stamps) == {0}
+
+
+def test_the_arm_holds_the_cpu_wake_up_latency_while_it_runs() -> None:
+    import os
+    import struct
+
+    from services.threads import CPU_DMA_LATENCY
+
+    if not os.access(CPU_DMA_LATENCY, os.W_OK):
+        pytest.skip(f"{CPU_DMA_LATENCY} is not writable here (root is needed)")
+
+    def current() -> int:
+        with open(CPU_DMA_LATENCY, "rb") as f:
+            return int(struct.unpack("=i", f.read(4))[0])
+
+    before = current()
+    svc = _arm(dt_s=0.002, max_ticks=100, cpu_latency_us=3)
+    assert svc._cpu_latency.held and current() <= 3
+    th = _run_in_thread(svc)
+    th.join(30)
+    assert not th.is_alive()
+    assert not svc._cpu_latency.held and current() == before
