@@ -28,8 +28,11 @@ whole stack is also run once at normal scheduling, for comparison. Then every sc
 again with the CPUs' wake-up latency held at 0 µs for its whole duration
 (:class:`services.threads.CpuLatencyRequest`, the request ``arm.cpu_latency_us = 0`` makes:
 idle CPUs poll instead of halting; system-wide, so the platform reference and the timer loop
-run under it too); ``--no-latency-round`` skips that round. The targets are judged on the
-first round (the stack file's defaults); the second is reported beside it.
+run under it too); and a third time with the latency held and the arm alone on the highest CPU
+(``cpu_affinity`` in the stack file; the null arm likewise; the timer loop, the reference for the
+arm's missed ticks, on the arm's CPU; every other process on the other CPUs).
+``--no-latency-round`` skips both. The targets are judged on the first round (the stack file's
+defaults); the others are reported beside it.
 
 Targets: (1) arm + probe: the arm ≤ 15 % of one core; (2) the whole stack ≤ 70 % of one core in
 total; (3) with the stack running, the arm's missed ticks ≤ 2× the bare timer loop's misses.
@@ -122,12 +125,19 @@ run_dir = {json.dumps(str(workdir))}
 
 
 def _stack_file(services: tuple[str, ...], workdir: Path, endpoint: str, fps: float,
-                arm_stats: Path, rt_priority: int = 0) -> Path:
-    """A stack file with the scenario's processes (the benchmark's own stack description)."""
+                arm_stats: Path, rt_priority: int = 0, cpus: CpuSplit | None = None) -> Path:
+    """A stack file with the scenario's processes (the benchmark's own stack description);
+    ``cpus``: the arm on its CPUs, every other process on the rest (``cpu_affinity``)."""
     rt = ["--rt-priority", str(rt_priority)] if rt_priority else []
+
+    def affinity(name: str) -> str:
+        if cpus is None:
+            return ""
+        return f"cpu_affinity = {json.dumps(cpus.arm if name == 'arm' else cpus.rest)}\n"
+
     procs = "".join(
         f"[[stack.processes]]\nname = {json.dumps(name)}\n"
-        f"command = {json.dumps(cmd + rt if name == 'probe' else cmd)}\n"
+        f"command = {json.dumps(cmd + rt if name == 'probe' else cmd)}\n{affinity(name)}"
         for name, cmd in PROCESSES if name in services
     )
     tables = {
@@ -145,8 +155,23 @@ def _stack_file(services: tuple[str, ...], workdir: Path, endpoint: str, fps: fl
     return path
 
 
+@dataclass(frozen=True)
+class CpuSplit:
+    """The arm (and the null arm that stands in for it) on ``arm``'s CPUs, the others on ``rest``."""
+
+    arm: list[int]
+    rest: list[int]
+
+    @classmethod
+    def last_cpu_for_the_arm(cls) -> CpuSplit | None:
+        """The highest CPU for the arm, the others for the rest (``None`` on one CPU)."""
+        cpus = sorted(os.sched_getaffinity(0))
+        return cls([cpus[-1]], cpus[:-1]) if len(cpus) > 1 else None
+
+
 def start_stack(
-    services: tuple[str, ...], workdir: Path, *, fps: float = 30.0, rt_priority: int = 0
+    services: tuple[str, ...], workdir: Path, *, fps: float = 30.0, rt_priority: int = 0,
+    cpus: CpuSplit | None = None,
 ) -> Stack:
     """Start ``services`` (subset of router, arm, probe, camera, tracker, recorder, null_arm)
     on a fresh loopback port with the supervisor (``psm up``'s code: in order, each one alive
@@ -154,7 +179,7 @@ def start_stack(
     started with the supervisor's process class once the stack is up."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     stack = Stack(workdir=workdir, arm_stats=workdir / "arm-stats.json")
-    stack_file = _stack_file(services, workdir, endpoint, fps, stack.arm_stats, rt_priority)
+    stack_file = _stack_file(services, workdir, endpoint, fps, stack.arm_stats, rt_priority, cpus)
     sup = Supervisor(load_stack(stack_file), out=io.StringIO(), live=False)
     stack.supervisor = sup
     try:
@@ -167,7 +192,7 @@ def start_stack(
         client = ["--mode", "client", "--connect", endpoint, "--no-multicast", "--log-level", "WARNING"]
         stack.procs["null_arm"] = ManagedProcess(
             "null_arm", [sys.executable, "-m", "benchmarks.stack", "--null-arm", *client],
-            workdir / "null_arm.log",
+            workdir / "null_arm.log", cpu_affinity=cpus.arm if cpus else (),
         )
     return stack
 
@@ -180,32 +205,38 @@ def deployed_rt_priority() -> int:
 
 
 def run_scenario(
-    name: str, seconds: float, warmup_s: float, fps: float, rt_priority: int = 0, cpu_latency_us: int = -1
+    name: str, seconds: float, warmup_s: float, fps: float, rt_priority: int = 0, cpu_latency_us: int = -1,
+    cpus: CpuSplit | None = None,
 ) -> dict[str, Any]:
     """Run one scenario: start it, warm up, measure CPU over ``seconds``, stop; returns the
     per-process CPU, the arm's loop statistics and the bare timer reference. ``cpu_latency_us``
-    ≥ 0: the CPUs' wake-up latency is held at that many µs while the scenario runs."""
+    ≥ 0: the CPUs' wake-up latency is held at that many µs while the scenario runs; ``cpus``:
+    the arm (or the null arm) and the timer loop (the reference for its missed ticks) on their own
+    CPUs, the other processes on the rest."""
     latency = CpuLatencyRequest(cpu_latency_us)
     if latency.problem:
         raise SystemExit(f"benchmarks.stack: {latency.problem}")
     try:
-        return _run_scenario(name, seconds, warmup_s, fps, rt_priority) | {"cpu_latency_us": cpu_latency_us}
+        out = _run_scenario(name, seconds, warmup_s, fps, rt_priority, cpus)
     finally:
         latency.close()
+    return out | {"cpu_latency_us": cpu_latency_us, "arm_cpus": cpus.arm if cpus else None}
 
 
-def _run_scenario(name: str, seconds: float, warmup_s: float, fps: float, rt_priority: int) -> dict[str, Any]:
+def _run_scenario(
+    name: str, seconds: float, warmup_s: float, fps: float, rt_priority: int, cpus: CpuSplit | None
+) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix=f"stack-{name}-") as tmp:
         workdir = Path(tmp)
         timer_out = workdir / "timer.json"
-        stack = start_stack(SCENARIOS[name], workdir, fps=fps, rt_priority=rt_priority)
+        stack = start_stack(SCENARIOS[name], workdir, fps=fps, rt_priority=rt_priority, cpus=cpus)
         t_arm = time.monotonic()
         loop_s = warmup_s + seconds + 2.0  # the arm loads its model for ~1-2 s first
         timer = ManagedProcess(
             "bare_timer",
             [sys.executable, "-m", "benchmarks.stack", "--timer", str(loop_s), "--timer-out",
              str(timer_out)],
-            workdir / "bare_timer.log",
+            workdir / "bare_timer.log", cpu_affinity=cpus.arm if cpus else (),
         )
         try:
             time.sleep(warmup_s + 2.0)
@@ -346,6 +377,8 @@ def verdicts(res: dict[str, Any], suffix: str = "") -> dict[str, Any]:
 
 #: Key suffix of the scenarios run with the CPUs' wake-up latency held at 0 µs.
 LATENCY_SUFFIX = "_lat0"
+#: Key suffix of the scenarios run with the latency held and the arm on a CPU of its own.
+PINNED_SUFFIX = "_lat0_pinned"
 
 
 def _round_lines(res: dict[str, Any], suffix: str) -> list[str]:
@@ -443,6 +476,19 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
             "",
             *_round_lines(res, LATENCY_SUFFIX),
         ]
+    if "verdicts" + PINNED_SUFFIX in res:
+        arm_cpus = res["scenarios"]["arm" + PINNED_SUFFIX]["arm_cpus"]
+        lines += [
+            "",
+            f"## The latency held and the arm on CPU {arm_cpus} alone (`cpu_affinity`)",
+            "",
+            "The same again, with the arm (and in (p) the null arm standing in for it) on a CPU of its "
+            "own, shared only with the bare timer loop that is the reference for its missed ticks, and "
+            "every other process on the others (the stack file's `cpu_affinity`): the arm's caches are "
+            "no longer shared with the router and the probe.",
+            "",
+            *_round_lines(res, PINNED_SUFFIX),
+        ]
     (out / "stack.md").write_text("\n".join(lines) + "\n")
 
 
@@ -460,7 +506,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--timer-out", type=Path, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--null-arm", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--no-latency-round", action="store_true",
-                    help="skip the second round with the CPUs' wake-up latency held at 0 us")
+                    help="skip the rounds with the CPUs' wake-up latency held at 0 us (and the arm pinned)")
     ap.add_argument("--rt-priority", type=int, default=None,
                     help="SCHED_FIFO priority of the arm and the probe (default: configs/stack.toml's)")
     args, rest = ap.parse_known_args(argv)
@@ -491,20 +537,23 @@ def main(argv: list[str] | None = None) -> int:
     runs = [(name, name, rt) for name in SCENARIOS]
     if rt:
         runs.append(("stack_normal", "stack", 0))  # the same stack at normal scheduling
-    rounds = [("", -1)]
+    rounds: list[tuple[str, int, CpuSplit | None]] = [("", -1, None)]
     if not args.no_latency_round:
         probe = CpuLatencyRequest(0)  # can this machine hold the request? (root is needed)
         probe.close()
+        split = CpuSplit.last_cpu_for_the_arm()
         if probe.problem:
-            print(f"second round skipped: {probe.problem}", flush=True)
+            print(f"latency rounds skipped: {probe.problem}", flush=True)
             res["latency_round_skipped"] = probe.problem
         else:
-            rounds.append((LATENCY_SUFFIX, 0))
-    for suffix, latency_us in rounds:
+            rounds.append((LATENCY_SUFFIX, 0, None))
+            if split is not None:
+                rounds.append((PINNED_SUFFIX, 0, split))
+    for suffix, latency_us, cpus in rounds:
         for key, name, prio in runs:
             print(f"scenario {key + suffix} ...", flush=True)
             res["scenarios"][key + suffix] = run_scenario(
-                name, seconds, args.warmup, args.fps, prio, latency_us
+                name, seconds, args.warmup, args.fps, prio, latency_us, cpus
             )
             print(json.dumps(res["scenarios"][key + suffix]["cpu_pct"]), flush=True)
         res["verdicts" + suffix] = verdicts(res, suffix)

@@ -179,6 +179,8 @@ class _Builder:
             "cpus": p.cpus,
             "mem_limit": f"{p.memory_mb}m",
         }
+        if p.cpu_affinity:
+            svc["cpuset"] = ",".join(str(c) for c in p.cpu_affinity)
         if self.realtime(p):
             # The control loop (arm -> router -> planner) wins the CPU under contention
             # (cgroup weight; SCHED_FIFO with compose.realtime.yaml).

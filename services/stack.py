@@ -36,7 +36,7 @@ import importlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field
 
@@ -134,6 +134,11 @@ class ProcessSpec(Section):
         "(docker compose: depends_on ... service_healthy)",
     )
     cpus: float = Field(1.0, gt=0.0, le=64.0, description="container CPU limit (docker compose) [cores]")
+    cpu_affinity: list[Annotated[int, Field(ge=0, le=4095)]] = Field(
+        default_factory=list,
+        description="the CPUs (numbers) the process may run on, e.g. [1] to give the control loop a core "
+        "of its own ([] = any; docker compose: cpuset)",
+    )
     memory_mb: int = Field(
         1024, ge=64, le=1 << 20, description="container memory limit (docker compose) [MiB]"
     )
@@ -160,6 +165,8 @@ class ProcessSpec(Section):
             raise ConfigError("command", str(exc)) from None
         if self.ends_stack and self.restart == "always":
             raise ConfigError("restart", "a process with ends_stack = true cannot restart 'always'")
+        if len(set(self.cpu_affinity)) != len(self.cpu_affinity):
+            raise ConfigError("cpu_affinity", f"lists a CPU twice: {self.cpu_affinity}")
 
     @property
     def is_router(self) -> bool:

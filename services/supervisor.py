@@ -103,6 +103,21 @@ def cpu_seconds(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / _CLK_TCK
 
 
+def set_affinity(pid: int, cpus: Sequence[int]) -> None:
+    """Restrict every thread of process ``pid`` to ``cpus`` (threads it starts later inherit the
+    mask of the thread that starts them). Called right after the exec, while the interpreter is
+    still starting (single-threaded), so that Zenoh's and the libraries' threads inherit it.
+    Raises :class:`OSError` when a CPU does not exist or is not allowed here."""
+    allowed = set(cpus)
+    try:
+        tasks = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+    except OSError:
+        tasks = [pid]
+    for tid in tasks:
+        with contextlib.suppress(ProcessLookupError):
+            os.sched_setaffinity(tid, allowed)
+
+
 class ManagedProcess:
     """One child process: own process group, output in ``log_path`` (``append``: after what
     is there), stopped by PID."""
@@ -117,6 +132,7 @@ class ManagedProcess:
         cwd: str | Path | None = None,
         stderr_path: Path | None = None,
         append: bool = False,
+        cpu_affinity: Sequence[int] = (),
     ) -> None:
         self.name = name
         self.argv = list(argv)
@@ -145,6 +161,12 @@ class ManagedProcess:
             start_new_session=True,
         )
         self.pid = self.popen.pid
+        if cpu_affinity:
+            try:
+                set_affinity(self.pid, cpu_affinity)
+            except OSError:
+                self.stop(1.0)
+                raise
 
     def alive(self) -> bool:
         """True while the process runs."""
@@ -453,6 +475,14 @@ class Supervisor:
 
             self.secrets_dir = write_secrets(self.run_dir / "secrets").out_dir.resolve()
             self._say(f"access control on: the processes' credentials are in {self.secrets_dir}")
+        here = os.sched_getaffinity(0)
+        for i, spec in enumerate(self.stack.processes):
+            missing = sorted(set(spec.cpu_affinity) - here)
+            if missing:
+                raise StackFailureError(
+                    f"stack.processes[{i}].cpu_affinity: CPU {', '.join(map(str, missing))} is not "
+                    f"available here (this process may use {', '.join(map(str, sorted(here)))})"
+                )
         if not any(self._router_endpoint(p.name) for p in self.stack.processes):
             self._open_session()
         for spec in self.stack.processes:
@@ -477,7 +507,7 @@ class Supervisor:
         """Start ``psm <command> --config <stack file>`` of ``spec`` (its log in the run dir)."""
         argv = psm_argv([*spec.command, "--config", str(self.stack.path.resolve())])
         return ManagedProcess(spec.name, argv, self.run_dir / f"{spec.name}.log",
-                              env=self._env_of(spec), append=append)
+                              env=self._env_of(spec), append=append, cpu_affinity=spec.cpu_affinity)
 
     def _restart(self, row: _Row) -> None:
         """Start ``row``'s process again (its log goes on in the same file) and wait until it is

@@ -98,6 +98,15 @@ def test_the_camera_overrides_stream_a_real_camera() -> None:
     assert "${PSM_CAMERA_URL" in " ".join(url["command"])
 
 
+def test_a_cpu_affinity_becomes_the_containers_cpuset() -> None:
+    stack = load_stack(ROOT / "configs" / "stack.toml")
+    arm = next(p for p in stack.processes if p.name == "arm")
+    arm.cpu_affinity = [1, 3]
+    services = yaml.safe_load(compose_files(stack)["compose.yaml"])["services"]
+    assert services["arm"]["cpuset"] == "1,3"
+    assert all("cpuset" not in svc for name, svc in services.items() if name != "arm")
+
+
 def test_a_stack_without_a_router_is_a_config_error() -> None:
     stack = load_stack(ROOT / "configs" / "stack.toml")
     stack.processes = [p for p in stack.processes if p.name != "router"]
