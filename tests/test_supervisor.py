@@ -3,11 +3,13 @@ log's tail and stops everything, and leaves no process behind — also when it i
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -68,6 +70,23 @@ def _up(stack: Path, *args: str, tmp_path: Path) -> ManagedProcess:
     return ManagedProcess("up", psm_argv(["up", str(stack), *args]), tmp_path / "up.log", cwd=ROOT)
 
 
+@contextlib.contextmanager
+def _running(stack: Path, *args: str, tmp_path: Path) -> Iterator[ManagedProcess]:
+    """``psm up`` of ``stack`` for the block; stopped (and reaped) whatever the block does."""
+    up = _up(stack, *args, tmp_path=tmp_path)
+    try:
+        yield up
+    finally:
+        up.stop()
+
+
+def _run(stack: Path, *args: str, tmp_path: Path, timeout_s: float = 120.0) -> tuple[int | None, str]:
+    """Run ``psm up`` of ``stack`` to its end: its exit code and its output."""
+    with _running(stack, *args, tmp_path=tmp_path) as up:
+        rc = up.wait(timeout_s)
+    return rc, up.log_text()
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -101,12 +120,7 @@ def _wait_for(pred, timeout_s: float) -> bool:  # type: ignore[no-untyped-def]
 def test_up_runs_the_stack_for_a_duration_and_summarises(tmp_path: Path) -> None:
     from services.bus.log import read_log
 
-    up = _up(_stack(tmp_path), "--duration", "4", "--clock", "lockstep", "--no-live", tmp_path=tmp_path)
-    try:
-        rc = up.wait(120)
-    finally:
-        up.stop()
-    log = up.log_text()
+    rc, log = _run(_stack(tmp_path), "--duration", "4", "--clock", "lockstep", "--no-live", tmp_path=tmp_path)
     assert rc == 0, log
     assert set(_child_pids(log)) == {"router", "recorder", "arm"}
     for name in ("router", "recorder", "arm"):
@@ -119,12 +133,7 @@ def test_up_runs_the_stack_for_a_duration_and_summarises(tmp_path: Path) -> None
 
 def test_a_process_that_dies_stops_the_stack_with_its_log(tmp_path: Path) -> None:
     # The arm's model cannot be loaded: the arm exits during start-up with one error line.
-    up = _up(_stack(tmp_path, arm='urdf = "/nonexistent/robot.urdf"'), "--no-live", tmp_path=tmp_path)
-    try:
-        rc = up.wait(120)
-    finally:
-        up.stop()
-    log = up.log_text()
+    rc, log = _run(_stack(tmp_path, arm='urdf = "/nonexistent/robot.urdf"'), "--no-live", tmp_path=tmp_path)
     assert rc == 1, log
     assert "psm up: error: arm exited during start-up (exit code 2)" in log, log
     assert "psm arm: error:" in log and "robot.urdf" in log  # the tail of the arm's log
@@ -132,8 +141,7 @@ def test_a_process_that_dies_stops_the_stack_with_its_log(tmp_path: Path) -> Non
 
 
 def test_sigkill_of_the_supervisor_leaves_no_orphan(tmp_path: Path) -> None:
-    up = _up(_stack(tmp_path), "--no-live", tmp_path=tmp_path)
-    try:
+    with _running(_stack(tmp_path), "--no-live", tmp_path=tmp_path) as up:
         assert _wait_for(lambda: len(_child_pids(up.log_text())) == 3, 90), up.log_text()
         pids = _child_pids(up.log_text())
         assert all(_alive(p) for p in pids.values())
@@ -142,19 +150,14 @@ def test_sigkill_of_the_supervisor_leaves_no_orphan(tmp_path: Path) -> None:
         assert _wait_for(lambda: not any(_alive(p) for p in pids.values()), 30), {
             n: _alive(p) for n, p in pids.items()
         }
-    finally:
-        up.stop()
 
 
 def test_sigterm_stops_in_reverse_order(tmp_path: Path) -> None:
-    up = _up(_stack(tmp_path), "--no-live", tmp_path=tmp_path)
-    try:
+    with _running(_stack(tmp_path), "--no-live", tmp_path=tmp_path) as up:
         assert _wait_for(lambda: len(_child_pids(up.log_text())) == 3, 90), up.log_text()
         time.sleep(1.0)
         up.signal(signal.SIGTERM)
         rc = up.wait(60)
-    finally:
-        up.stop()
     log = up.log_text()
     assert rc == 0, log
     assert "signal SIGTERM" in log
@@ -180,8 +183,7 @@ def _wait_pid(up: ManagedProcess, name: str, not_pid: int, timeout_s: float) -> 
 
 def test_a_process_with_a_restart_policy_is_restarted_up_to_max_restarts(tmp_path: Path) -> None:
     stack = _stack(tmp_path, procs={"arm": 'restart = "on-failure"\nmax_restarts = 1'})
-    up = _up(stack, "--no-live", tmp_path=tmp_path)
-    try:
+    with _running(stack, "--no-live", tmp_path=tmp_path) as up:
         first = _wait_pid(up, "arm", 0, 90)
         assert first, up.log_text()
         os.kill(first, signal.SIGKILL)
@@ -190,8 +192,6 @@ def test_a_process_with_a_restart_policy_is_restarted_up_to_max_restarts(tmp_pat
         assert up.alive()
         os.kill(second, signal.SIGKILL)  # the second failure: max_restarts = 1 is used up
         rc = up.wait(60)
-    finally:
-        up.stop()
     log = up.log_text()
     assert rc == 1, log
     assert "arm exited with code -9; restarting it (1/1)" in log, log
@@ -202,8 +202,8 @@ def test_a_process_with_a_restart_policy_is_restarted_up_to_max_restarts(tmp_pat
 
 
 def test_a_process_that_is_not_required_may_exit_and_the_stack_goes_on(tmp_path: Path) -> None:
-    up = _up(_stack(tmp_path, procs={"recorder": "required = false"}), "--no-live", tmp_path=tmp_path)
-    try:
+    stack = _stack(tmp_path, procs={"recorder": "required = false"})
+    with _running(stack, "--no-live", tmp_path=tmp_path) as up:
         assert _wait_for(lambda: len(_child_pids(up.log_text())) == 3, 90), up.log_text()
         os.kill(_child_pids(up.log_text())["recorder"], signal.SIGKILL)
         assert _wait_for(lambda: "it is not required, the stack goes on" in up.log_text(), 20)
@@ -211,8 +211,6 @@ def test_a_process_that_is_not_required_may_exit_and_the_stack_goes_on(tmp_path:
         assert up.alive(), up.log_text()
         up.signal(signal.SIGTERM)
         rc = up.wait(60)
-    finally:
-        up.stop()
     log = up.log_text()
     assert rc == 1 and "psm up: error: recorder exited with -9" in log, log
     assert "signal SIGTERM" in log  # stopped by the signal, not by the recorder's exit
@@ -237,8 +235,7 @@ def _allowed_cpus(pid: int) -> set[str]:
 def test_a_process_with_a_cpu_affinity_runs_every_thread_on_those_cpus(tmp_path: Path) -> None:
     cpu = max(os.sched_getaffinity(0))
     stack = _stack(tmp_path, procs={"arm": f"cpu_affinity = [{cpu}]"})
-    up = _up(stack, "--duration", "6", "--clock", "lockstep", "--no-live", tmp_path=tmp_path)
-    try:
+    with _running(stack, "--duration", "6", "--clock", "lockstep", "--no-live", tmp_path=tmp_path) as up:
         assert _wait_for(lambda: "arm" in _child_pids(up.log_text()), 60), up.log_text()
         pids = _child_pids(up.log_text())
         time.sleep(2.0)  # the arm's session is open: Zenoh's threads exist
@@ -247,19 +244,12 @@ def test_a_process_with_a_cpu_affinity_runs_every_thread_on_those_cpus(tmp_path:
         if len(os.sched_getaffinity(0)) > 1:  # the others keep every CPU
             assert _allowed_cpus(pids["router"]) != {str(cpu)}
         rc = up.wait(120)
-    finally:
-        up.stop()
     assert rc == 0, up.log_text()
 
 
 def test_a_cpu_the_machine_does_not_have_is_one_error_line_before_anything_starts(tmp_path: Path) -> None:
-    stack = _stack(tmp_path, procs={"recorder": "cpu_affinity = [4095]"})
-    up = _up(stack, "--no-live", tmp_path=tmp_path)
-    try:
-        rc = up.wait(60)
-    finally:
-        up.stop()
-    log = up.log_text()
+    rc, log = _run(_stack(tmp_path, procs={"recorder": "cpu_affinity = [4095]"}), "--no-live",
+                   tmp_path=tmp_path, timeout_s=60)
     assert rc == 1, log
     assert "psm up: error: stack.processes[1].cpu_affinity: CPU 4095 is not available here" in log, log
     assert not _child_pids(log), log
