@@ -469,20 +469,20 @@ class Supervisor:
 
     def start(self) -> None:
         """Start every process in order, each after the previous one is alive."""
+        here = os.sched_getaffinity(0)  # the CPUs a process's cpu_affinity may name
+        for i, spec in enumerate(self.cfg.stack.processes):
+            missing = sorted(set(spec.cpu_affinity) - here) if spec.enabled else []
+            if missing:
+                raise StackFailureError(
+                    f"stack.processes[{i}].cpu_affinity: CPU {', '.join(map(str, missing))} is not "
+                    f"available here (this process may use {', '.join(map(str, sorted(here)))})"
+                )
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if self.cfg.stack.access_control:
             from services.bus.credentials import write_secrets
 
             self.secrets_dir = write_secrets(self.run_dir / "secrets").out_dir.resolve()
             self._say(f"access control on: the processes' credentials are in {self.secrets_dir}")
-        here = os.sched_getaffinity(0)
-        for i, spec in enumerate(self.stack.processes):
-            missing = sorted(set(spec.cpu_affinity) - here)
-            if missing:
-                raise StackFailureError(
-                    f"stack.processes[{i}].cpu_affinity: CPU {', '.join(map(str, missing))} is not "
-                    f"available here (this process may use {', '.join(map(str, sorted(here)))})"
-                )
         if not any(self._router_endpoint(p.name) for p in self.stack.processes):
             self._open_session()
         for spec in self.stack.processes:
