@@ -3,7 +3,7 @@ command types themselves are the protocol's: :mod:`services.robot.protocol`).
 
 The controller turns a Cartesian command into joint accelerations (paper Fig. 6)::
 
-    α_des = Kp_R · log(R_ref Rᵀ) + Kd_R · (ω_ref − ω) (+ α_ff)        orientation PD (rad/s²)
+    α_des = Kp_R · log(R_ref Rᵀ) + Kd_R · (ω_ref − ω)                  orientation PD (rad/s²)
     a     = [ẍ_des; α_des]                                            (6,)
     q̈_task = J⁺_λ (a − J̇q̇)                                            damped least squares
     q̈     = q̈_task + (I − J⁺_λ J) (Kp_n (q_posture − q) − Kd_n q̇)     null-space posture
@@ -11,6 +11,10 @@ The controller turns a Cartesian command into joint accelerations (paper Fig. 6)
 ``J⁺_λ = Jᵀ (J Jᵀ + λ² I)⁻¹`` with λ² = 0 away from singularities and growing smoothly to
 ``λ_max²`` as the smallest singular value of ``J`` drops below ``ε``. Then :func:`clamp_joint_accel`
 bounds q̈ so that the next state respects the acceleration, velocity and position limits.
+The arithmetic of the controller and of the limits is compiled (:mod:`services.arm.kernel`);
+this module holds their configuration, state and Python interface. The kernels (and numba) are
+imported by the classes and functions that run them, so that reading the configuration models
+(the planner reads the gains' defaults) does not load the compiler.
 """
 
 from __future__ import annotations
@@ -19,14 +23,18 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-import pinocchio as pin
 from pydantic import Field
-from scipy.linalg.lapack import dpotrf as _potrf
-from scipy.linalg.lapack import dpotri as _potri
 
 from services.bus.config import Section
 from services.robot.model import JointLimits, RobotModel
 from services.robot.protocol import Command, CommandMode, CommandRejectedError
+
+#: Bits of the compiled clamps' result (:func:`services.arm.kernel.apply_bounds`): which limits
+#: changed the commanded acceleration, and the integrator's final position guard.
+CLAMP_ACCELERATION = 1
+CLAMP_VELOCITY = 2
+CLAMP_POSITION = 4
+POSITION_GUARD = 8
 
 
 class ValidationLimits(Section):
@@ -151,6 +159,12 @@ class ClampReport:
         """True if any clamp changed the commanded acceleration."""
         return self.acceleration or self.velocity or self.position
 
+    def set(self, flags: int) -> None:
+        """Set from the clamp bits of :mod:`services.arm.kernel`."""
+        self.acceleration = bool(flags & CLAMP_ACCELERATION)
+        self.velocity = bool(flags & CLAMP_VELOCITY)
+        self.position = bool(flags & CLAMP_POSITION)
+
 
 @dataclass
 class AccelBounds:
@@ -165,56 +179,26 @@ class AccelBounds:
 
 
 class AccelBoundsKernel:
-    """:func:`joint_accel_bounds` for fixed ``limits``, ``dt`` and ``brake_fraction``: the
-    constants are computed once and the intermediates live in preallocated ``(2, n)`` buffers
-    (the arm's per-tick path). Same operations in the same order, so the results are identical.
-    Not thread-safe."""
+    """:func:`joint_accel_bounds` for fixed ``limits``, ``dt`` and ``brake_fraction`` (the arm's
+    per-tick path: one compiled call, :func:`services.arm.kernel.accel_bounds`)."""
 
     def __init__(self, limits: JointLimits, dt: float, brake_fraction: float = 0.5) -> None:
-        n = limits.acceleration.shape[0]
+        from services.arm.kernel import accel_bounds
+
         self.limits, self.dt = limits, dt
-        self._amax = limits.acceleration
-        self._neg_amax = -limits.acceleration
-        self._vmax = limits.velocity
         self._brake = brake_fraction * limits.acceleration
-        self._c0 = 2.25 * dt * dt
-        self._c1 = 2.0 / self._brake
-        self._c2 = 1.5 * dt
-        self._sign = np.array([[1.0], [-1.0]])
-        self._D = np.empty((2, n))
-        self._S = np.empty((2, n))
-        self._V = np.empty((2, n))
-        self._H = np.empty((2, n))
-        # Row views, made once (indexing a row builds a new view object every time).
-        self._D0, self._D1 = self._D[0], self._D[1]
-        self._H0, self._H1 = self._H[0], self._H[1]
+        self._kernel = accel_bounds
 
     def __call__(self, q: np.ndarray, dq: np.ndarray) -> AccelBounds:
         """The bounds for state ``q`` (n,) rad, ``dq`` (n,) rad/s (see :func:`joint_accel_bounds`)."""
-        lim, dt = self.limits, self.dt
-        D, S, V, H = self._D, self._S, self._V, self._H
-        # Row 0: distance to the upper limit, row 1: distance to the lower limit (rad).
-        np.subtract(lim.upper, q, out=self._D0)
-        np.subtract(q, lim.lower, out=self._D1)
-        np.maximum(D, 0.0, out=D)
-        np.multiply(D, self._c1, out=S)
-        S += self._c0
-        np.sqrt(S, out=S)
-        S -= self._c2
-        S *= self._brake  # the stop speeds (rad/s)
-        np.minimum(self._vmax, S, out=V)
-        V *= self._sign  # row 1 becomes the lowest allowed next velocity
-        np.subtract(V, dq, out=H)
-        H /= dt
-        hi = np.minimum(self._amax, self._H0)
-        lo = np.maximum(self._neg_amax, self._H1)
-        bad = lo > hi
-        if bad.any():
-            fix = np.clip((np.clip(dq, V[1], V[0]) - dq) / dt, self._neg_amax, self._amax)
-            lo = np.where(bad, fix, lo)
-            hi = np.where(bad, fix, hi)
-        vel = S >= self._vmax
-        return AccelBounds(lo, hi, vel[1], vel[0])
+        lim = self.limits
+        n = q.shape[0]
+        out = AccelBounds(np.empty(n), np.empty(n), np.empty(n, dtype=bool), np.empty(n, dtype=bool))
+        self._kernel(
+            q, dq, lim.lower, lim.upper, lim.velocity, lim.acceleration, self._brake, self.dt,
+            out.lo, out.hi, out.lo_is_velocity, out.hi_is_velocity,
+        )
+        return out
 
 
 def joint_accel_bounds(
@@ -230,8 +214,7 @@ def joint_accel_bounds(
     from which the joint can still stop (at ``brake_fraction`` of its acceleration limit) before
     its position limits; ``|ddq|`` must stay within the acceleration limit. If a joint is
     already outside that viable set, the interval collapses to the hardest allowed deceleration
-    toward it. (Both sides are computed at once on ``(2, n)`` arrays; :class:`AccelBoundsKernel` keeps
-    the constants and buffers for repeated calls.)
+    toward it.
 
     Discrete braking from speed v at deceleration a covers at most v·dt + v²/(2a) + v·dt/2
     with the semi-implicit Euler integrator; the stop speed for a distance d solves that for v:
@@ -246,24 +229,17 @@ def apply_accel_bounds(
     bounds: AccelBounds,
     report: ClampReport | None = None,
 ) -> np.ndarray:
-    """Scale ``ddq`` uniformly into the acceleration limits (keeps the Cartesian direction),
+    """Scale ``ddq`` (n,) uniformly into the acceleration limits (keeps the Cartesian direction),
     then clip each joint into ``bounds``; fills ``report`` with the active clamps."""
-    out = np.asarray(ddq, dtype=float)
-    ratio = float((np.abs(out) / acceleration_limits).max())
-    acc_clamped = ratio > 1.0
-    if acc_clamped:
-        out = out / ratio
-    below = out < bounds.lo
-    above = out > bounds.hi
+    from services.arm.kernel import apply_bounds
+
+    ddq = np.ascontiguousarray(ddq, dtype=float)
+    out = np.empty_like(ddq)
+    flags = apply_bounds(
+        ddq, acceleration_limits, bounds.lo, bounds.hi, bounds.lo_is_velocity, bounds.hi_is_velocity, out
+    )
     if report is not None:
-        report.acceleration = acc_clamped
-        report.velocity = report.position = False
-    if (below | above).any():
-        if report is not None:
-            vel = (below & bounds.lo_is_velocity) | (above & bounds.hi_is_velocity)
-            report.velocity = bool(vel.any())
-            report.position = bool(((below | above) & ~vel).any())
-        out = np.clip(out, bounds.lo, bounds.hi)
+        report.set(flags)
     return out
 
 
@@ -313,32 +289,20 @@ class IKController:
     last_sigma_min: float = 0.0  #: smallest singular value of J in the last call
 
     def __post_init__(self) -> None:
-        self._eye6 = np.eye(6)
+        from services.arm.kernel import ik_finish, ik_prepare
+
+        self._ik_prepare, self._ik_finish = ik_prepare, ik_finish
+        n = self.robot.n
         if self.posture is None:
             self.posture = self.robot.resolve_pose("middle")
-        self._Jt = np.zeros((self.robot.n, 6))
-        self._K = np.zeros((6, 6))
+        self._posture = np.ascontiguousarray(self.posture, dtype=float)
+        self._J = np.zeros((6, n))
+        self._K = np.eye(6)
         self._b0 = np.zeros(6)
-        self._p = np.zeros(self.robot.n)
+        self._p = np.zeros(n)
         self._R = np.eye(3)
         self._omega = np.zeros(3)
-
-    def _damped_inverse(self, A: np.ndarray) -> tuple[np.ndarray, float]:
-        """``(A⁻¹, s)`` for the SPD 6×6 ``A = J Jᵀ (+ λ² I)`` via LAPACK Cholesky, with
-        ``s = 1/‖A⁻¹‖_F`` (a lower bound of ``A``'s smallest eigenvalue, within a factor √6);
-        ``s = 0`` if ``A`` is not positive definite."""
-        c, info = _potrf(A, lower=1, clean=1)
-        if info != 0:
-            return self._eye6, 0.0
-        L, info = _potri(c, lower=1)
-        if info != 0:
-            return self._eye6, 0.0
-        d = L.diagonal()
-        fro2 = 2.0 * float((L * L).sum()) - float(d @ d)
-        # L + Lᵀ − diag(d): the diagonal 2d − d is exactly d, so it is written instead.
-        K = L + L.T
-        K.flat[:: K.shape[0] + 1] = d
-        return K, 1.0 / math.sqrt(fro2)
+        self._zero3 = np.zeros(3)
 
     def prepare(
         self,
@@ -356,29 +320,23 @@ class IKController:
         ``rotation`` (3, 3) of this state may be passed when already computed (they are read
         from the robot model otherwise).
 
-        The damping uses ``σ_min(J)² ≈ 1/‖(J Jᵀ)⁻¹‖_F``, a lower bound of the smallest
-        eigenvalue of ``J Jᵀ`` (tight within √6), so damping starts at or slightly before
-        ``σ_min = ε``: λ² = (1 − σ²/ε²) λ_max² below ε, else 0.
+        ``(J Jᵀ)⁻¹`` comes from its Cholesky factor; the damping uses ``σ_min(J)² ≈
+        1/‖(J Jᵀ)⁻¹‖_F``, a lower bound of the smallest eigenvalue of ``J Jᵀ`` (tight within
+        √6), so damping starts at or slightly before ``σ_min = ε``: λ² = (1 − σ²/ε²) λ_max²
+        below ε, else 0 (:func:`services.arm.kernel.ik_prepare`).
         """
         robot, g = self.robot, self.gains
         if J is None:
             J = robot.jacobian()
-        A = J @ J.T
-        K, sig2 = self._damped_inverse(A)
-        sigma = math.sqrt(sig2)
-        eps = g.singular_epsilon
-        lam2 = 0.0 if sigma >= eps else (1.0 - (sigma / eps) ** 2) * g.damping_max**2
+        sigma, lam = self._ik_prepare(
+            J, robot.drift() if drift is None else drift, q, dq, self._posture,
+            g.nullspace_kp, g.nullspace_kd, g.singular_epsilon, g.damping_max,
+            self._K, self._b0, self._p,
+        )
         self.last_sigma_min = sigma
-        self.last_damping = math.sqrt(lam2)
-        if lam2 > 0.0:
-            K, _ = self._damped_inverse(A + lam2 * self._eye6)
-        assert self.posture is not None
-        p = g.nullspace_kp * (self.posture - q) - g.nullspace_kd * dq
-        self._K = K
-        self._Jt = J.T
-        self._b0 = -(robot.drift() if drift is None else drift) - J @ p
-        self._p = p
-        self._R = robot.ee_placement().rotation if rotation is None else rotation
+        self.last_damping = lam
+        self._J = J
+        self._R = np.ascontiguousarray(robot.ee_placement().rotation) if rotation is None else rotation
         self._omega = (robot.ee_velocity() if twist is None else twist)[3:]
 
     def finish(
@@ -386,7 +344,6 @@ class IKController:
         linear_acceleration: np.ndarray,
         rotation_ref: np.ndarray,
         angular_velocity_ref: np.ndarray | None = None,
-        angular_acceleration_ff: np.ndarray | None = None,
     ) -> np.ndarray:
         """Joint accelerations ``(n,)`` rad/s² for the command, after :meth:`prepare`.
 
@@ -394,16 +351,15 @@ class IKController:
             linear_acceleration: desired EE linear acceleration ``(3,)`` m/s², base frame.
             rotation_ref: orientation reference ``(3, 3)``.
             angular_velocity_ref: angular velocity reference ``(3,)`` rad/s (default zero).
-            angular_acceleration_ff: angular acceleration feed-forward ``(3,)`` rad/s².
         """
         g = self.gains
-        b = self._b0.copy()
-        b[:3] += linear_acceleration
-        w_err = -self._omega if angular_velocity_ref is None else angular_velocity_ref - self._omega
-        b[3:] += g.orientation_kp * pin.log3(rotation_ref @ self._R.T) + g.orientation_kd * w_err
-        if angular_acceleration_ff is not None:
-            b[3:] += angular_acceleration_ff
-        return self._Jt @ (self._K @ b) + self._p
+        out = np.empty(self._p.shape[0])
+        self._ik_finish(
+            self._J, self._K, self._b0, self._p, self._omega, self._R, linear_acceleration,
+            rotation_ref, self._zero3 if angular_velocity_ref is None else angular_velocity_ref,
+            g.orientation_kp, g.orientation_kd, out,
+        )
+        return out
 
     def compute(
         self,
@@ -412,14 +368,17 @@ class IKController:
         linear_acceleration: np.ndarray,
         rotation_ref: np.ndarray,
         angular_velocity_ref: np.ndarray | None = None,
-        angular_acceleration_ff: np.ndarray | None = None,
     ) -> np.ndarray:
         """:meth:`prepare` + :meth:`finish` (``robot.update(q, dq)`` must have been called)."""
         self.prepare(q, dq)
-        return self.finish(linear_acceleration, rotation_ref, angular_velocity_ref, angular_acceleration_ff)
+        return self.finish(linear_acceleration, rotation_ref, angular_velocity_ref)
 
 
 __all__ = [
+    "CLAMP_ACCELERATION",
+    "CLAMP_POSITION",
+    "CLAMP_VELOCITY",
+    "POSITION_GUARD",
     "AccelBounds",
     "AccelBoundsKernel",
     "ClampReport",

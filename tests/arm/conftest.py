@@ -19,6 +19,14 @@ from services.supervisor import ManagedProcess, free_port
 ROOT = Path(__file__).resolve().parents[2]
 
 
+@pytest.fixture(scope="module")
+def robot() -> Any:
+    """The default robot model (the reduced Panda)."""
+    from services.robot.model import RobotModel
+
+    return RobotModel.load()
+
+
 class Bus:
     """An in-process Zenoh router that the spawned processes connect to as clients."""
 

@@ -28,11 +28,6 @@ from services.robot.rotations import matrix_from_quat_xyzw, quat_xyzw_from_matri
 
 
 @pytest.fixture(scope="module")
-def robot() -> RobotModel:
-    return RobotModel.load()
-
-
-@pytest.fixture(scope="module")
 def full_panda() -> tuple[pin.Model, pin.Data]:
     """Independent reference: the unreduced Panda (9 joints incl. fingers)."""
     m = pin.buildModelFromUrdf(str(panda_urdf_path()))
