@@ -190,7 +190,7 @@ class ArmService(ServiceApp):
         self._payload = b""  # the encoded current state (see _encode_current)
         self._payload_tick = -1
         self._encoder = StateEncoder(list(self.robot.joint_names), config.arm.frame_id, self.dt_ns * 1e-9)
-        self._tf_msg: Any = None
+        self._tf_due_ns = -1  # sim time of the FrameTransforms to publish after the state, or -1
         self._tf_slot = -1
         self._degraded_since = 0  # perf_counter ns of the first miss of the current episode
         self._last_miss_ns = 0
@@ -321,26 +321,25 @@ class ArmService(ServiceApp):
         return tick
 
     def _encode_current(self) -> None:
-        """Serialise the current state (and, on a transforms tick, its FrameTransforms, stamped
-        with the same sim time) for :meth:`_put_current`."""
+        """Serialise the current state for :meth:`_put_current` (and, on a transforms tick, mark
+        its FrameTransforms due, stamped with the same sim time)."""
         sim = self.sim
         snap = sim.snapshot()
         self._payload = self._encoder.encode(
             snap, watchdog_tripped=sim.watchdog_tripped, rejected_commands=sim.counters["rejected"]
         )
         self._payload_tick = snap.tick
-        self._tf_msg = None
+        self._tf_due_ns = -1
         if self._tf_pub is not None:
             slot = snap.tick // self._tf_every
             if slot != self._tf_slot:  # first tick of a transforms period (also after a skip)
                 self._tf_slot = slot
-                self._tf_msg = frame_transforms(
-                    self.robot, self._frames, snap.time_ns, self.config.arm.frame_id
-                )
+                self._tf_due_ns = snap.time_ns
 
     def _put_current(self) -> int:
         """Publish what :meth:`_encode_current` prepared; returns the ``perf_counter_ns`` time of
-        the state's ``put``."""
+        the state's ``put``. Due FrameTransforms are built after that ``put`` (the robot model
+        still holds the published state's kinematics), off the state's path."""
         now = time.perf_counter_ns()
         self._state_pub.put_bytes(self._payload)
         tick = self._payload_tick
@@ -348,9 +347,11 @@ class ArmService(ServiceApp):
         self._pub_ns[slot] = now
         self._pub_tick[slot] = tick
         self.stats.published_ticks += 1
-        if self._tf_msg is not None and self._tf_pub is not None:
-            self._tf_pub.put(self._tf_msg)
-            self._tf_msg = None
+        if self._tf_due_ns >= 0 and self._tf_pub is not None:
+            self._tf_pub.put(
+                frame_transforms(self.robot, self._frames, self._tf_due_ns, self.config.arm.frame_id)
+            )
+            self._tf_due_ns = -1
         return now
 
     def _publish_state(self) -> int:

@@ -305,12 +305,17 @@ class RobotModel:
         """Ids of the model's link (BODY) frames, in model order."""
         return [i for i, f in enumerate(self.model.frames) if f.type == pin.FrameType.BODY]
 
-    def link_placements(self, frame_ids: Sequence[int]) -> list[tuple[str, pin.SE3]]:
-        """``(link_name, base_T_link)`` for the given frames, valid after :meth:`update` or
-        :meth:`fk` (placements for the Foxglove transform tree, all parented to the base)."""
-        out: list[tuple[str, pin.SE3]] = []
+    def link_poses(self, frame_ids: Sequence[int]) -> list[tuple[str, list[float]]]:
+        """``(link_name, [x, y, z, qx, qy, qz, qw])`` of the given frames in the base frame
+        (m; unit quaternion with ``qw ≥ 0``), valid after :meth:`update` or :meth:`fk`: the
+        placements of the Foxglove transform tree, all parented to the base."""
+        out: list[tuple[str, list[float]]] = []
+        model, data = self.model, self.data
         for fid in frame_ids:
-            out.append((self.model.frames[fid].name, pin.updateFramePlacement(self.model, self.data, fid)))
+            pose = pin.SE3ToXYZQUAT(pin.updateFramePlacement(model, data, fid)).tolist()
+            if pose[6] < 0.0:
+                pose[3:] = [-pose[3], -pose[4], -pose[5], -pose[6]]
+            out.append((model.frames[fid].name, pose))
         return out
 
     def solve_ik(

@@ -30,7 +30,7 @@ from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from services.bus.messages import ArmCommand, ArmState, FrameTransforms
-from services.robot.rotations import matrix_from_quat_xyzw, quat_xyzw_from_matrix
+from services.robot.rotations import matrix_from_quat_xyzw
 
 if TYPE_CHECKING:
     from services.robot.model import RobotModel
@@ -343,18 +343,17 @@ def frame_transforms(
     """Foxglove ``FrameTransforms`` of the given link frames, each parented to the base frame
     ``frame_id``; valid after ``robot.update``/``robot.fk`` for the state to show."""
     stamp = Timestamp(seconds=time_ns // 1_000_000_000, nanos=time_ns % 1_000_000_000)
-    links = [(name, M) for name, M in robot.link_placements(frame_ids) if name != frame_id]
     out = FrameTransforms()
-    if not links:
-        return out
-    quats = quat_xyzw_from_matrix(np.stack([M.rotation for _, M in links]))
-    for (name, M), (x, y, z, w) in zip(links, quats.tolist(), strict=True):
+    for name, (x, y, z, qx, qy, qz, qw) in robot.link_poses(frame_ids):
+        if name == frame_id:
+            continue
         tf: FrameTransform = out.transforms.add()
         tf.timestamp.CopyFrom(stamp)
         tf.parent_frame_id = frame_id
         tf.child_frame_id = name
-        _set3(tf.translation, M.translation)
-        tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = x, y, z, w
+        t, r = tf.translation, tf.rotation
+        t.x, t.y, t.z = x, y, z
+        r.x, r.y, r.z, r.w = qx, qy, qz, qw
     return out
 
 

@@ -125,20 +125,22 @@ def test_commands_round_trip() -> None:
     assert err.value.reason == "malformed"
 
 
-def test_frame_transforms_match_link_placements() -> None:
+def test_frame_transforms_match_the_link_placements() -> None:
     robot = RobotModel.load()
-    q = robot.resolve_pose("ready")
-    robot.fk(q)
     frames = robot.body_frame_ids()
-    tf = frame_transforms(robot, frames, 1_500_000_001, "base")
-    placements = dict(robot.link_placements(frames))
-    assert len(tf.transforms) == len([n for n in placements if n != "base"])
-    for t in tf.transforms:
-        M = placements[t.child_frame_id]
-        assert t.parent_frame_id == "base" and t.timestamp.seconds == 1 and t.timestamp.nanos == 500_000_001
-        np.testing.assert_allclose([t.translation.x, t.translation.y, t.translation.z], M.translation)
-        r = t.rotation
-        np.testing.assert_allclose([r.x, r.y, r.z, r.w], _pin_quat(M.rotation), atol=1e-12)
+    rng = np.random.default_rng(7)
+    for q in [robot.resolve_pose("ready"), *rng.uniform(robot.limits.lower, robot.limits.upper, (20, robot.n))]:
+        robot.fk(q)
+        tf = frame_transforms(robot, frames, 1_500_000_001, "base")
+        placements = {robot.model.frames[f].name: robot.data.oMf[f] for f in frames}
+        assert len(tf.transforms) == len([n for n in placements if n != "base"])
+        for t in tf.transforms:
+            M = placements[t.child_frame_id]
+            assert t.parent_frame_id == "base" and t.timestamp.seconds == 1 and t.timestamp.nanos == 500_000_001
+            np.testing.assert_allclose([t.translation.x, t.translation.y, t.translation.z], M.translation)
+            r = t.rotation
+            assert r.w >= 0.0
+            np.testing.assert_allclose([r.x, r.y, r.z, r.w], _pin_quat(M.rotation), atol=1e-12)
 
 
 def test_protocol_imports_neither_pinocchio_nor_the_arm() -> None:
