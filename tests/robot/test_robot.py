@@ -129,14 +129,16 @@ def test_frame_transforms_match_the_link_placements() -> None:
     robot = RobotModel.load()
     frames = robot.body_frame_ids()
     rng = np.random.default_rng(7)
-    for q in [robot.resolve_pose("ready"), *rng.uniform(robot.limits.lower, robot.limits.upper, (20, robot.n))]:
+    poses = rng.uniform(robot.limits.lower, robot.limits.upper, (20, robot.n))
+    for q in [robot.resolve_pose("ready"), *poses]:
         robot.fk(q)
         tf = frame_transforms(robot, frames, 1_500_000_001, "base")
         placements = {robot.model.frames[f].name: robot.data.oMf[f] for f in frames}
         assert len(tf.transforms) == len([n for n in placements if n != "base"])
         for t in tf.transforms:
             M = placements[t.child_frame_id]
-            assert t.parent_frame_id == "base" and t.timestamp.seconds == 1 and t.timestamp.nanos == 500_000_001
+            assert t.parent_frame_id == "base"
+            assert t.timestamp.seconds == 1 and t.timestamp.nanos == 500_000_001
             np.testing.assert_allclose([t.translation.x, t.translation.y, t.translation.z], M.translation)
             r = t.rotation
             assert r.w >= 0.0
