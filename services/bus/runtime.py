@@ -269,6 +269,31 @@ def publisher_matching(pub: Any) -> bool | None:
     return None if status is None else bool(status.matching)
 
 
+#: Zenoh's environment variable for its runtimes' threads, read once per process when Zenoh
+#: starts its first runtime.
+ZENOH_RUNTIME_ENV = "ZENOH_RUNTIME"
+#: The value :func:`apply_zenoh_runtime` gave ``ZENOH_RUNTIME`` (a child process inherits both).
+ZENOH_RUNTIME_APPLIED_ENV = "PSM_ZENOH_RUNTIME_APPLIED"
+
+
+def apply_zenoh_runtime(cfg: ZenohConfig) -> None:
+    """Set Zenoh's runtime threads of this process to ``cfg.runtime`` (``ZENOH_RUNTIME``).
+
+    An empty ``runtime`` leaves Zenoh's defaults, or a ``ZENOH_RUNTIME`` the user set: only a
+    value this function set (inherited from a parent process that opened a session, such as
+    ``psm up``) is removed. Zenoh reads the variable when its first runtime starts, at the first
+    session of the process: later sessions share those threads."""
+    env = os.environ
+    setting = cfg.runtime_setting()
+    if setting:
+        env[ZENOH_RUNTIME_ENV] = env[ZENOH_RUNTIME_APPLIED_ENV] = setting
+    elif (
+        ZENOH_RUNTIME_APPLIED_ENV in env
+        and env.get(ZENOH_RUNTIME_ENV) == env.pop(ZENOH_RUNTIME_APPLIED_ENV)
+    ):
+        env.pop(ZENOH_RUNTIME_ENV, None)
+
+
 def open_session(cfg: ZenohConfig, extra: Mapping[str, Any] | None = None) -> Any:
     """Open a ``zenoh.Session`` from config (``extra``: see :func:`zenoh_config`). Zenoh's own
     (Rust) log level follows ``RUST_LOG``, default ``error`` (:func:`init_zenoh_log`).
@@ -281,6 +306,7 @@ def open_session(cfg: ZenohConfig, extra: Mapping[str, Any] | None = None) -> An
     from services.bus.errors import session_error
 
     init_zenoh_log()
+    apply_zenoh_runtime(cfg)
     try:
         return zenoh.open(zenoh_config(cfg, extra))
     except zenoh.ZError as exc:
@@ -443,6 +469,11 @@ class Subscription:
     * ``"inline"`` (opt-in only): the callback runs on Zenoh's receive thread — lowest latency,
       for handlers that return within microseconds (store the latest value, set an event);
       anything heavier stalls every stream of the session.
+    * ``"latest"`` (opt-in only): a zenoh ``RingChannel`` of one sample and no worker thread.
+      The receive thread keeps the newest sample (no Python, no GIL); the consumer calls
+      :meth:`take` when it wants the current value, and the callback runs on its thread. For a
+      consumer that samples a fast stream (a clock from the arm's 500 Hz state): the samples it
+      never takes cost it nothing and are counted neither as received nor as dropped.
     """
 
     def __init__(
@@ -459,9 +490,9 @@ class Subscription:
     ) -> None:
         import zenoh
 
-        if delivery not in ("queue", "channel", "inline"):
+        if delivery not in ("queue", "channel", "inline", "latest"):
             raise ValueError(
-                f"delivery must be 'queue', 'channel' or 'inline', got {delivery!r}"
+                f"delivery must be 'queue', 'channel', 'inline' or 'latest', got {delivery!r}"
             )
         self.service = service
         self.key_expr = key_expr
@@ -475,8 +506,12 @@ class Subscription:
         self.received = 0
         self._drop_log = _RateLimiter(1.0)
         self._closed = False
+        self._put_kind = zenoh.SampleKind.PUT
+        self._zerror = zenoh.ZError
         if delivery == "channel":
             target: Any = zenoh.handlers.FifoChannel(queue_size)
+        elif delivery == "latest":
+            target = zenoh.handlers.RingChannel(1)
         elif delivery == "inline":
             put_kind = zenoh.SampleKind.PUT
 
@@ -495,11 +530,12 @@ class Subscription:
             )
         else:
             self._sub = service.session.declare_subscriber(key_expr, target)
-        if delivery == "channel":
+        self._worker: threading.Thread | None = None
+        if delivery in ("channel", "latest"):
             self._channel = self._sub.handler
-            run: Callable[[], None] = self._run_channel
-        else:
-            run = self._run_queue  # idle for "inline": it only ends at close()
+        if delivery == "latest":
+            return  # the consumer's thread takes the samples
+        run = self._run_channel if delivery == "channel" else self._run_queue  # "inline": idle
         self._worker = threading.Thread(target=run, name=f"sub:{self.name}", daemon=True)
         self._worker.start()
 
@@ -562,9 +598,25 @@ class Subscription:
                 return
             process(sample, now(), put_kind)
 
+    def take(self) -> bool:
+        """``"latest"`` delivery: run the callback on the newest sample that arrived since the
+        last call, on the caller's thread. Returns whether there was one."""
+        if self.delivery != "latest":
+            raise RuntimeError(f"take() needs delivery 'latest', this subscription has {self.delivery!r}")
+        if self._closed:
+            return False
+        try:
+            sample = self._channel.try_recv()
+        except self._zerror:  # undeclared
+            return False
+        if sample is None:
+            return False
+        self._process(sample, time.time_ns(), self._put_kind)
+        return True
+
     def pending(self) -> int:
-        """Samples waiting in the queue (0 for ``channel`` delivery, which zenoh does not
-        report)."""
+        """Samples waiting in the queue (0 for ``channel`` and ``latest`` delivery, which zenoh
+        does not report)."""
         return self._q.qsize()
 
     def close(self, drain_timeout_s: float = 10.0) -> None:
@@ -575,8 +627,9 @@ class Subscription:
         self._closed = True
         with contextlib.suppress(Exception):
             self._sub.undeclare()
-        self._q.put(None)
-        self._worker.join(drain_timeout_s)
+        if self._worker is not None:
+            self._q.put(None)
+            self._worker.join(drain_timeout_s)
 
 
 # --------------------------------------------------------------------------------------------

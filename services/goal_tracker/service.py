@@ -206,24 +206,36 @@ def open_capture(sec: GoalTrackerSection, stop: threading.Event) -> FrameSource 
     return None
 
 
+#: The sim clock's largest accepted gap between two states it looks at [s of the arm's time]:
+#: the camera looks about once a frame in realtime, every millisecond of wall time in lockstep.
+MAX_SAMPLED_GAP_S = 1.0
+
+
 class _SimClock:
-    """Latest sim time from the arm's state (``<prefix>/arm/state``), like ROS ``/clock``. Only
-    states that continue the arm's stream move it (:class:`~services.robot.protocol.StateStream`):
-    a stale, replayed or forged state with a stamp far ahead would otherwise freeze the frames
-    until the real clock caught up; those are rejected by reason on the status."""
+    """Latest sim time from the arm's state (``<prefix>/arm/state``), like ROS ``/clock``.
+
+    The camera samples the 500 Hz stream when it asks for the time (``"latest"`` delivery: the
+    states it does not look at cost it nothing). Only states that continue the arm's stream move
+    the clock (:class:`~services.robot.protocol.StateStream`, with a tick gap of up to
+    :data:`MAX_SAMPLED_GAP_S` of the arm's time between two looks): a stale, replayed or forged
+    state with a stamp far ahead would otherwise freeze the frames until the real clock caught
+    up; those are rejected by reason on the status."""
 
     def __init__(self, svc: Any) -> None:
-        from services.robot.protocol import StateStream
-
         self.now_ns: int | None = None
         self._svc = svc
-        self._stream = StateStream()
+        self._stream: Any = None  # a StateStream, made at the first state (it needs dt)
+        self._sub = svc.subscribe(svc.keys.arm_state, self.on_state, delivery="latest")
 
     def on_state(self, msg: Any, key: str) -> None:
         dt = float(msg.dt_s)
         if not (math.isfinite(dt) and dt > 0.0):
             self._svc.record_rejection(key, f"tick {msg.tick}: dt_s {dt} is not a positive number", "dt")
             return
+        if self._stream is None:
+            from services.robot.protocol import MAX_TICK_GAP, StateStream
+
+            self._stream = StateStream(max_tick_gap=max(MAX_TICK_GAP, math.ceil(MAX_SAMPLED_GAP_S / dt)))
         verdict, why = self._stream.check(int(msg.tick), int(msg.stamp_ns), dt)
         if verdict in ("tick", "stamp"):
             self._svc.record_rejection(key, why, verdict)
@@ -231,16 +243,16 @@ class _SimClock:
         self.now_ns = int(msg.sim_time_ns or msg.stamp_ns)
 
     def __call__(self) -> int | None:
+        self._sub.take()
         return self.now_ns
 
 
 def _synthetic_on_bus(svc: Any, sec: GoalTrackerSection) -> SyntheticSource:
-    clock = _SimClock(svc)
-    svc.subscribe(svc.keys.arm_state, clock.on_state, queue_size=16)
     return SyntheticSource(
         build_synthetic_camera(sec),
         sec.synthetic.fps,
-        sim_clock=clock,
+        sim_clock=_SimClock(svc),
+        sim_realtime=svc.config.clock == "realtime",
         max_frames=sec.synthetic.frames,
         stop=svc.stop_event,
     )

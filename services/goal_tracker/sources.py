@@ -226,7 +226,10 @@ class SyntheticSource:
     the latest sim time in ns, or None before the first one — e.g. the arm's state) the grid is
     on the sim time itself: frame ``k`` is produced once sim time reaches ``k / fps`` and is
     stamped exactly that. The scene shown is the one at ``stamp − origin`` (origin: the start,
-    or the grid time at or before the first sim time seen: 0 for a lockstep arm).
+    or the grid time at or before the first sim time seen: 0 for a lockstep arm). The sim clock
+    is asked every millisecond while a frame is due; with ``sim_realtime`` (sim time advances
+    with the wall clock, as a realtime arm's does) the source first sleeps until the frame is
+    due on the latest sim time, so it asks about once a frame.
 
     A camera that cannot keep its rate (slow rendering, a descheduled process, a sim clock
     running faster than real time) drops frames instead of lagging: ``read`` returns the
@@ -239,6 +242,7 @@ class SyntheticSource:
         fps: float = 30.0,
         *,
         sim_clock: Callable[[], int | None] | None = None,
+        sim_realtime: bool = False,
         max_frames: int = 0,
         stop: threading.Event | None = None,
     ) -> None:
@@ -248,6 +252,7 @@ class SyntheticSource:
         self.fps = float(fps)
         self._period = frame_period_ns(self.fps)
         self.sim_clock = sim_clock
+        self.sim_realtime = sim_realtime
         self.max_frames = max_frames
         self.stop = stop or threading.Event()
         self.seq = 0
@@ -285,9 +290,13 @@ class SyntheticSource:
                         self._next_k = k
                     if k >= self._next_k:
                         break
-                if time.monotonic() >= deadline or self.stop.is_set():
+                remaining = deadline - time.monotonic()
+                if remaining <= 0.0 or self.stop.is_set():
                     return None
-                self.stop.wait(0.001)
+                wait = 0.001
+                if self.sim_realtime and now is not None:
+                    wait = max(wait, (self.frame_time_ns(self._next_k) - now) * 1e-9)
+                self.stop.wait(min(wait, remaining))
             stamp = self.frame_time_ns(k)
         else:
             due = self._t0_mono + self.frame_time_ns(self._next_k) * 1e-9

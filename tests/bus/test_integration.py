@@ -364,3 +364,41 @@ def test_low_latency_transport_peers_exchange_every_message_in_order() -> None:
     finally:
         b.close()
         a.close()
+
+
+def test_latest_delivery_takes_only_the_newest_sample_on_the_callers_thread(router) -> None:  # type: ignore[no-untyped-def]
+    """``"latest"``: nothing runs until ``take()``; then the callback runs once, on the caller's
+    thread, with the newest sample; the ones it replaced are neither received nor dropped."""
+    a = Service("sub", client_config(router)).start()
+    b = Service("pub", client_config(router)).start()
+    k = Keys()
+    got: list[tuple[int, str]] = []
+    try:
+        sub = a.subscribe(
+            k.arm_state, lambda m, _key: got.append((m.tick, threading.current_thread().name)),
+            delivery="latest",
+        )
+        pub = b.publisher(k.arm_state)
+
+        def route_ready() -> bool:
+            pub.put(ArmState(stamp_ns=1, tick=1_000_000))
+            time.sleep(0.02)
+            return sub.take()
+        assert wait_for(route_ready, 10, period_s=0.05)
+        got.clear()
+        assert not sub.take()  # nothing new
+        received = sub.received
+        for i in range(200):
+            pub.put(ArmState(stamp_ns=i + 1, tick=i))
+        time.sleep(0.5)  # all 200 have arrived (loopback): only the newest is kept
+        assert sub.take()
+        assert got == [(199, threading.current_thread().name)]
+        assert sub.received - received == 1 and sub.dropped == 0
+        assert not sub.take()
+        with pytest.raises(RuntimeError, match="latest"):
+            a.subscribe(k.arm_state, lambda m, _key: None).take()
+        sub.close()
+        assert not sub.take()
+    finally:
+        b.close()
+        a.close()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import cv2
@@ -247,3 +248,88 @@ def test_unreachable_stream_is_one_clear_error() -> None:
         port = s.getsockname()[1]  # bound but not listening: connection refused
         with pytest.raises(CameraOpenError, match="cannot open url"):
             VideoCaptureSource(f"http://127.0.0.1:{port}/stream.mjpg", "url")
+
+
+def test_synthetic_sim_clock_in_realtime_sleeps_until_the_frame_is_due() -> None:
+    """A realtime arm's sim time advances with the wall clock: the camera sleeps until the next
+    frame is due instead of asking the clock every millisecond, and still stamps each frame with
+    its grid time."""
+    cam = SyntheticCamera(noise_sigma=0)
+    epoch = 1_700_000_000_000_000_000
+    t0 = time.monotonic_ns()
+    calls = {"realtime": 0, "polled": 0}
+
+    def clock(kind: str) -> Callable[[], int]:
+        def now() -> int:
+            calls[kind] += 1
+            return epoch + (time.monotonic_ns() - t0) // 2_000_000 * 2_000_000  # 500 Hz ticks
+        return now
+
+    for kind, realtime in (("realtime", True), ("polled", False)):
+        src = SyntheticSource(cam, 30.0, sim_clock=clock(kind), sim_realtime=realtime)
+        frames = [src.read(1.0) for _ in range(6)]
+        assert all(f is not None for f in frames)
+        stamps = [f.stamp_ns for f in frames if f is not None]
+        assert set(np.diff(stamps).tolist()) <= {33_333_333, 33_333_334}  # consecutive grid frames
+        assert src.dropped == 0
+    # 5 frame periods (167 ms): about 2 looks a frame against one a millisecond
+    assert calls["realtime"] <= 25 < 80 <= calls["polled"], calls
+
+
+class _FakeService:
+    """What :class:`services.goal_tracker.service._SimClock` uses of a service: ``subscribe``
+    (``"latest"`` delivery: ``take`` hands over the newest queued state), ``record_rejection``."""
+
+    def __init__(self) -> None:
+        from services.bus.messages import Keys
+
+        self.keys = Keys()
+        self.states: list[object] = []
+        self.rejected: list[str] = []
+
+    def subscribe(self, topic, callback, *, delivery):  # type: ignore[no-untyped-def]
+        assert delivery == "latest"
+        fake = self
+
+        class Sub:
+            def take(self) -> bool:
+                if not fake.states:
+                    return False
+                callback(fake.states.pop(), topic.key)
+                fake.states.clear()
+                return True
+        return Sub()
+
+    def record_rejection(self, key: str, why: str, kind: str) -> None:
+        self.rejected.append(kind)
+
+
+def test_sim_clock_samples_the_arm_state_and_rejects_states_off_its_stream() -> None:
+    """The camera's sim clock looks at a state now and then (a realtime camera: about once a
+    frame, 16+ ticks apart): those continue the stream; a replayed state or one forged far
+    ahead does not move the clock, and is counted."""
+    from services.bus.messages import ArmState
+    from services.goal_tracker.service import MAX_SAMPLED_GAP_S, _SimClock
+
+    svc = _FakeService()
+    clock = _SimClock(svc)
+    assert clock() is None
+    epoch = 1_700_000_000_000_000_000
+
+    def state(tick: int) -> ArmState:
+        t = epoch + tick * 2_000_000
+        return ArmState(tick=tick, stamp_ns=t, sim_time_ns=t, dt_s=0.002)
+
+    for tick in (0, 17, 33, 50, 67, 84, 150):  # up to 66 ticks apart (> the 50 of a follower)
+        svc.states.append(state(tick))
+        assert clock() == epoch + tick * 2_000_000
+    far = round(MAX_SAMPLED_GAP_S / 0.002) + 200
+    svc.states.append(state(150 + far))  # forged: consistent, but far ahead
+    assert clock() == epoch + 150 * 2_000_000
+    svc.states.append(state(100))  # replayed
+    assert clock() == epoch + 150 * 2_000_000
+    svc.states.append(ArmState(tick=160, stamp_ns=epoch, sim_time_ns=epoch, dt_s=0.002))  # bad stamp
+    assert clock() == epoch + 150 * 2_000_000
+    svc.states.append(state(170))
+    assert clock() == epoch + 170 * 2_000_000
+    assert svc.rejected == ["tick", "tick", "stamp"]
