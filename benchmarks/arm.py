@@ -183,15 +183,9 @@ def bench_tick_cost(n: int) -> dict[str, Any]:
 # ------------------------------------------------------------------------------- ping-pong
 def _raw_config(low_latency: bool, **endpoints: str) -> Any:
     """A bare ``zenoh.Config`` (peer, multicast off) for the raw ping-pong, optionally with the
-    low-latency transport (which Zenoh only accepts with QoS off). The process gets the
-    services' Zenoh threads (``zenoh.runtime``'s default), so the bound and the arm compare like
-    for like."""
+    low-latency transport (which Zenoh only accepts with QoS off)."""
     import zenoh
 
-    from services.bus.config import ZenohConfig
-    from services.bus.runtime import apply_zenoh_runtime
-
-    apply_zenoh_runtime(ZenohConfig())
     conf = zenoh.Config()
     conf.insert_json5("mode", '"peer"')
     for kind, endpoint in endpoints.items():

@@ -163,25 +163,6 @@ class Section(BaseModel):
 # --------------------------------------------------------------------------------------------
 
 
-#: Zenoh's runtimes (thread pools): application, accept, transmit, receive, network.
-ZenohRuntimeName = Literal["app", "acc", "tx", "rx", "net"]
-
-
-class ZenohRuntimeParams(Section):
-    """One Zenoh runtime's threads (an entry of Zenoh's ``ZENOH_RUNTIME`` setting)."""
-
-    worker_threads: int | None = Field(None, ge=1, le=64, description="its worker threads")
-    max_blocking_threads: int | None = Field(None, ge=1, le=512, description="its blocking threads")
-    handover: ZenohRuntimeName | None = Field(
-        None, description="run this runtime's tasks on that runtime's threads instead"
-    )
-
-
-def _default_zenoh_runtime() -> dict[str, ZenohRuntimeParams]:
-    """Receive and accept work on the application runtime's thread (see :attr:`ZenohConfig.runtime`)."""
-    return {"rx": ZenohRuntimeParams(handover="app"), "acc": ZenohRuntimeParams(handover="app")}
-
-
 class ZenohConfig(Section):
     """How a service joins the Zenoh network."""
 
@@ -217,13 +198,6 @@ class ZenohConfig(Section):
     password_file: str = Field(
         "", description="a file whose content (stripped) is the password of zenoh.user"
     )
-    runtime: dict[ZenohRuntimeName, ZenohRuntimeParams] = Field(
-        default_factory=_default_zenoh_runtime,
-        description="Zenoh's thread pools for this process (its ZENOH_RUNTIME setting, which "
-        "this replaces; {}: Zenoh's defaults, or ZENOH_RUNTIME from the environment). The "
-        "default runs the receive and accept work on the application runtime's one thread: "
-        "fewer thread wake-ups per message (docs/bus.md#zenohs-threads)",
-    )
 
     @field_validator("connect", "listen")
     @classmethod
@@ -236,30 +210,13 @@ class ZenohConfig(Section):
 
     def check(self) -> None:
         """A client without multicast scouting needs an endpoint; a user needs a readable,
-        non-empty password file, and a password file a user; a runtime is handed over to a
-        runtime that keeps its own threads."""
-        for name, params in self.runtime.items():
-            target = params.handover
-            if target is not None and (target == name or self.runtime.get(target, _NO_HANDOVER).handover):
-                raise ConfigError(
-                    f"runtime.{name}.handover",
-                    f"{target!r} must be another runtime that is not handed over itself",
-                )
+        non-empty password file, and a password file a user."""
         if self.mode == "client" and not self.connect and not self.multicast:
             raise ConfigError("connect", "client mode with multicast off needs at least one endpoint")
         if self.user:
             self.password()
         elif self.password_file:
             raise ConfigError("user", f"is empty but password_file is set ({self.password_file})")
-
-    def runtime_setting(self) -> str:
-        """:attr:`runtime` in Zenoh's ``ZENOH_RUNTIME`` syntax (RON), ``""`` when empty:
-        ``(rx: (handover: app), acc: (handover: app))``."""
-        parts = []
-        for name, params in self.runtime.items():
-            fields = ", ".join(f"{k}: {v}" for k, v in params.model_dump().items() if v is not None)
-            parts.append(f"{name}: ({fields})")
-        return f"({', '.join(parts)})" if parts else ""
 
     def password(self) -> str:
         """The password of :attr:`user`: the stripped content of :attr:`password_file`
@@ -277,9 +234,6 @@ class ZenohConfig(Section):
         if not text:
             raise ConfigError("password_file", f"{self.password_file} is empty")
         return text
-
-
-_NO_HANDOVER = ZenohRuntimeParams()
 
 
 class _Sources:

@@ -269,31 +269,6 @@ def publisher_matching(pub: Any) -> bool | None:
     return None if status is None else bool(status.matching)
 
 
-#: Zenoh's environment variable for its runtimes' threads, read once per process when Zenoh
-#: starts its first runtime.
-ZENOH_RUNTIME_ENV = "ZENOH_RUNTIME"
-#: The value :func:`apply_zenoh_runtime` gave ``ZENOH_RUNTIME`` (a child process inherits both).
-ZENOH_RUNTIME_APPLIED_ENV = "PSM_ZENOH_RUNTIME_APPLIED"
-
-
-def apply_zenoh_runtime(cfg: ZenohConfig) -> None:
-    """Set Zenoh's runtime threads of this process to ``cfg.runtime`` (``ZENOH_RUNTIME``).
-
-    An empty ``runtime`` leaves Zenoh's defaults, or a ``ZENOH_RUNTIME`` the user set: only a
-    value this function set (inherited from a parent process that opened a session, such as
-    ``psm up``) is removed. Zenoh reads the variable when its first runtime starts, at the first
-    session of the process: later sessions share those threads."""
-    env = os.environ
-    setting = cfg.runtime_setting()
-    if setting:
-        env[ZENOH_RUNTIME_ENV] = env[ZENOH_RUNTIME_APPLIED_ENV] = setting
-    elif (
-        ZENOH_RUNTIME_APPLIED_ENV in env
-        and env.get(ZENOH_RUNTIME_ENV) == env.pop(ZENOH_RUNTIME_APPLIED_ENV)
-    ):
-        env.pop(ZENOH_RUNTIME_ENV, None)
-
-
 def open_session(cfg: ZenohConfig, extra: Mapping[str, Any] | None = None) -> Any:
     """Open a ``zenoh.Session`` from config (``extra``: see :func:`zenoh_config`). Zenoh's own
     (Rust) log level follows ``RUST_LOG``, default ``error`` (:func:`init_zenoh_log`).
@@ -306,7 +281,6 @@ def open_session(cfg: ZenohConfig, extra: Mapping[str, Any] | None = None) -> An
     from services.bus.errors import session_error
 
     init_zenoh_log()
-    apply_zenoh_runtime(cfg)
     try:
         return zenoh.open(zenoh_config(cfg, extra))
     except zenoh.ZError as exc:
