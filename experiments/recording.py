@@ -73,7 +73,8 @@ class Recording:
     ``ticks (N,)``; ``stamp_ns (N,)``; ``x, v (N, 3)`` [m, m/s] end-effector position and
     velocity; ``dt (N,)`` [s]; ``a_cmd (N, 3)`` [m/s²] the commanded acceleration (NaN where
     no command was recorded); ``status``: ``(state_tick, step, t_e (3,))`` of every planner
-    status; ``goals``: ``(stamp_ns, position (3,))`` of the planner's goal in use;
+    status; ``goals``: ``(stamp_ns, (6,))`` of the planner's goal in use: position [m] and the
+    goal's velocity [m/s] its motion was relative to (zero for a static goal);
     ``predictions``: ``(state_tick, collision, stop (3,), protective_stop)``."""
 
     path: Path
@@ -86,7 +87,7 @@ class Recording:
     a_cmd: NDArray[np.float64]
     steps: list[StepWindow]
     status: list[tuple[int, str, NDArray[np.float64]]]
-    goals: list[tuple[int, NDArray[np.float64]]]
+    goals: list[tuple[int, NDArray[np.float64]]]  # (stamp_ns, position + velocity (6,))
     predictions: list[tuple[int, bool, NDArray[np.float64], bool]]
     task_name: str = ""
     counts: dict[str, int] = field(default_factory=dict)
@@ -140,7 +141,8 @@ def read_recording(path: Path) -> Recording:
             if msg.step and len(msg.time_to_go_s) == 3:
                 status.append((int(msg.state_tick), msg.step, np.array(msg.time_to_go_s, dtype=float)))
         elif isinstance(msg, Goal):
-            goals.append((int(msg.stamp_ns), np.array([msg.position.x, msg.position.y, msg.position.z])))
+            p, gv = msg.position, msg.velocity
+            goals.append((int(msg.stamp_ns), np.array([p.x, p.y, p.z, gv.x, gv.y, gv.z])))
         elif isinstance(msg, TaskEvent):
             events.append(msg)
         elif isinstance(msg, CollisionPrediction):
@@ -215,13 +217,14 @@ def _step_windows(events: list[Any], last_tick: int) -> tuple[list[StepWindow], 
 
 def _goal_track(rec: Recording, rows: slice, static_goal: NDArray[np.float64] | None,
                 next_start_stamp: int | None) -> NDArray[np.float64]:
-    """The goal in use at each row of the step ``(n, 3)`` [m] (NaN before the first one known):
-    the static goal, or the planner's latest published goal of this step."""
+    """The goal in use at each row of the step ``(n, 6)``: position [m] and velocity [m/s] (NaN
+    before the first one known): the static goal (at rest), or the planner's latest published
+    goal of this step."""
     stamps = rec.stamp_ns[rows]
     n = len(stamps)
     if static_goal is not None:
-        return np.broadcast_to(static_goal, (n, 3)).copy()
-    out = np.full((n, 3), np.nan)
+        return np.broadcast_to(np.r_[static_goal, np.zeros(3)], (n, 6)).copy()
+    out = np.full((n, 6), np.nan)
     lo = int(stamps[0])
     hi = next_start_stamp if next_start_stamp is not None else None
     mine = [(s, g) for s, g in rec.goals if s >= lo and (hi is None or s < hi)]
@@ -238,11 +241,13 @@ def _goal_track(rec: Recording, rows: slice, static_goal: NDArray[np.float64] | 
 def _time_to_go(rec: Recording, rows: slice, model: Any, goal: NDArray[np.float64],
                 options: dict[str, Any], first_tick: int) -> NDArray[np.float64]:
     """``t_e (n, 3)`` [s] of the step's controller stepped on the recorded states from
-    ``first_tick`` on (NaN before it), with the
+    ``first_tick`` on (NaN before it), as the planner steps it: towards ``goal[:, :3]`` with the
+    velocity relative to the goal's ``goal[:, 3:]``, with the
     collision stops the planner applied (the latest prediction at or before each tick) and not
     stepped during a protective stop (the planner brakes every axis then)."""
     ticks = rec.ticks[rows]
     X, V, dts = rec.x[rows], rec.v[rows], rec.dt[rows]
+    goal, gvel = goal[:, :3], goal[:, 3:]
     preds = rec.predictions
     pred_ticks = np.array([p[0] for p in preds], dtype=np.int64)
     out = np.full((len(ticks), 3), np.nan)
@@ -269,7 +274,7 @@ def _time_to_go(rec: Recording, rows: slice, model: Any, goal: NDArray[np.float6
                 elif stops_set:
                     ctrl.clear_stops()
                     stops_set = False
-        ctrl.step(X[i], V[i], float(dts[i]))
+        ctrl.step(X[i], V[i] - gvel[i], float(dts[i]))
         out[i] = ctrl.time_to_go
     return out
 
@@ -349,8 +354,9 @@ def recording_result(
         static = None if spec.live else scene[spec.goal] + np.asarray(spec.offset_m, dtype=float)
         nxt = rec.steps[n + 1] if n + 1 < len(rec.steps) else None
         next_stamp = int(rec.stamp_ns[rec.index_of(nxt.start_tick)]) if nxt is not None else None
-        goal = _goal_track(rec, rows, static, next_stamp)
-        te = _time_to_go(rec, rows, model, goal, dict(spec.controller), step.control_tick)
+        goal_state = _goal_track(rec, rows, static, next_stamp)
+        te = _time_to_go(rec, rows, model, goal_state, dict(spec.controller), step.control_tick)
+        goal = goal_state[:, :3]
 
         demo_t = demo_X = None
         dpath = demo_path(spec.demo_name)

@@ -175,7 +175,7 @@ class PlannerService(ServiceApp):
         self.waited_states = 0
         self.rejected_predictions = 0
         self._goal_msg = Goal(frame_id=scene.frame_id)
-        self._sent_goal: tuple[float, float, float] | None = None
+        self._sent_goal: tuple[float, ...] | None = None  # position, velocity
         self._sent_goal_step = -1
         self.frame_id = scene.frame_id
         # After the models are learned (never fit at real-time priority) and before the bus
@@ -364,7 +364,8 @@ class PlannerService(ServiceApp):
         g = self.runner.goal
         if g is None:
             return
-        key = (float(g[0]), float(g[1]), float(g[2]))
+        gv = self.runner.goal_velocity
+        key = (float(g[0]), float(g[1]), float(g[2]), float(gv[0]), float(gv[1]), float(gv[2]))
         if key == self._sent_goal and self._sent_goal_step == self.runner.index:
             return
         self._sent_goal, self._sent_goal_step = key, self.runner.index
@@ -373,7 +374,8 @@ class PlannerService(ServiceApp):
         m.stamp_ns = self._last_stamp
         m.seq += 1
         m.name = spec.goal if spec else ""
-        m.position.x, m.position.y, m.position.z = key
+        m.position.x, m.position.y, m.position.z = key[:3]
+        m.velocity.x, m.velocity.y, m.velocity.z = key[3:]
         m.valid = True
         self._goal_pub.put(m)
 

@@ -125,6 +125,36 @@ def test_a_moving_person_is_followed(feeding: FeedingConfig, models: TaskModels)
     assert ("GOAL_CHANGED", "reach_person") in _kinds(res)
 
 
+@pytest.fixture(scope="module")
+def static_reach_s(feeding: FeedingConfig, models: TaskModels) -> float:
+    """How long reach_person takes with the person still [s]."""
+    res = simulate_task(feeding, models, goals=_static_person(feeding))
+    return float(res.summary["steps"][-1]["duration_s"])
+
+
+@pytest.mark.parametrize("velocity", [(0.008, 0.0, 0.0), (0.0, 0.008, 0.0), (0.0, 0.0, -0.008)],
+                         ids=["+x", "+y", "-z"])
+def test_a_person_moving_steadily_does_not_stall_the_reach(
+    feeding: FeedingConfig, models: TaskModels, static_reach_s: float, velocity: tuple[float, float, float]
+) -> None:
+    """The person drifts at 8 mm/s for 8 s across the start of reach_person. Its demonstration
+    dwells at the start in x (via-points at rest), which move with the goal: the PSM gets the
+    velocity relative to the goal's, so it reaches them moving with the person and the step
+    takes as long as for a person sitting still. (With the absolute velocity the dwell trailed
+    its via-point: the step took twice as long, or stalled until it timed out along +x.)"""
+    p0 = np.asarray(feeding.scene.person)
+    u = np.asarray(velocity)
+
+    def person(t: float) -> dict[str, Any]:
+        return {"person": (p0 + u * (min(max(0.0, t - 10.0), 8.0) - 4.0), True)}
+
+    res = simulate_task(feeding, models, goals=person)
+    assert res.summary["success"], res.summary["detail"]
+    reach = res.summary["steps"][-1]
+    assert reach["step"] == "reach_person"
+    assert reach["duration_s"] <= 1.15 * static_reach_s, (reach["duration_s"], static_reach_s)
+
+
 def test_a_lost_person_holds_the_motion_and_it_resumes(feeding: FeedingConfig, models: TaskModels) -> None:
     p = feeding.scene.person
     lost = (13.5, 15.0)

@@ -104,7 +104,7 @@ class ArmCommand(_message.Message):
     def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., tick: _Optional[int] = ..., mode: _Optional[_Union[ArmCommand.Mode, str]] = ..., linear_acceleration: _Optional[_Union[Vec3, _Mapping]] = ..., orientation_reference: _Optional[_Union[Quat, _Mapping]] = ..., angular_velocity_reference: _Optional[_Union[Vec3, _Mapping]] = ..., has_angular_velocity_reference: _Optional[bool] = ..., joint_accelerations: _Optional[_Iterable[float]] = ..., source: _Optional[str] = ..., frame_id: _Optional[str] = ...) -> None: ...
 
 class Goal(_message.Message):
-    __slots__ = ("stamp_ns", "seq", "name", "position", "covariance", "valid", "invalid_reason", "source", "frame_stamp_ns", "frame_id")
+    __slots__ = ("stamp_ns", "seq", "name", "position", "covariance", "valid", "invalid_reason", "source", "frame_stamp_ns", "frame_id", "velocity")
     STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     NAME_FIELD_NUMBER: _ClassVar[int]
@@ -115,6 +115,7 @@ class Goal(_message.Message):
     SOURCE_FIELD_NUMBER: _ClassVar[int]
     FRAME_STAMP_NS_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    VELOCITY_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     seq: int
     name: str
@@ -125,7 +126,8 @@ class Goal(_message.Message):
     source: str
     frame_stamp_ns: int
     frame_id: str
-    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., name: _Optional[str] = ..., position: _Optional[_Union[Vec3, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ..., valid: _Optional[bool] = ..., invalid_reason: _Optional[str] = ..., source: _Optional[str] = ..., frame_stamp_ns: _Optional[int] = ..., frame_id: _Optional[str] = ...) -> None: ...
+    velocity: Vec3
+    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., name: _Optional[str] = ..., position: _Optional[_Union[Vec3, _Mapping]] = ..., covariance: _Optional[_Iterable[float]] = ..., valid: _Optional[bool] = ..., invalid_reason: _Optional[str] = ..., source: _Optional[str] = ..., frame_stamp_ns: _Optional[int] = ..., frame_id: _Optional[str] = ..., velocity: _Optional[_Union[Vec3, _Mapping]] = ...) -> None: ...
 
 class FaceBox(_message.Message):
     __slots__ = ("x_px", "y_px", "w_px", "h_px", "confidence")
