@@ -105,7 +105,8 @@ def test_info_table_for_people(capsys: pytest.CaptureFixture[str]) -> None:
     code, out, err = _psm(capsys, "info", str(DEMO))
     assert code == 0 and err == ""
     lines = out.splitlines()
-    assert lines[:3] == [f"file:      {DEMO}", f"size:      304.2 kB ({DEMO.stat().st_size} bytes)",
+    size = DEMO.stat().st_size
+    assert lines[:3] == [f"file:      {DEMO}", f"size:      {size / 1000:.1f} kB ({size} bytes)",
                          "state:     complete"]
     assert "messages:  1838" in lines and "duration:  3.600 s" in lines
     assert f"end:       {utc_iso(3_600_000_000)} (3600000000 ns)" in lines
