@@ -146,6 +146,13 @@ async def _client(port: int, seconds: float) -> dict[str, Any]:
                     subs = [{"id": c["id"], "channelId": c["id"]} for c in msg["channels"]]
                     topics.update({c["id"]: c["topic"] for c in msg["channels"]})
                     await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                elif msg["op"] == "status" and msg.get("message", "").startswith("Unknown channel ID: "):
+                    # The SDK refuses a subscription that overtakes the channel's registration
+                    # (docs/bus.md#live-view): subscribe again to a channel it advertised.
+                    cid = int(msg["message"].rsplit(" ", 1)[1])
+                    if cid in topics:
+                        await ws.send(json.dumps(
+                            {"op": "subscribe", "subscriptions": [{"id": cid, "channelId": cid}]}))
                 continue
             (sub_id,) = struct.unpack_from("<I", frame, 1)
             c = counts.setdefault(topics.get(sub_id, "?"), [0, 0])

@@ -15,6 +15,7 @@ import asyncio
 import base64
 import itertools
 import json
+import re
 import socket
 import struct
 import time
@@ -54,6 +55,10 @@ class Received:
     server_info: dict[str, Any] = field(default_factory=dict)
     channels: dict[int, dict[str, Any]] = field(default_factory=dict)
     messages: dict[str, list[tuple[float, int, bytes]]] = field(default_factory=dict)
+    #: the server's status messages (text), in arrival order
+    statuses: list[str] = field(default_factory=list)
+    #: channels subscribed again after the server refused them as unknown (see _watch)
+    resubscribed: list[int] = field(default_factory=list)
 
     def topic(self, topic: str) -> dict[str, Any]:
         return next(c for c in self.channels.values() if c["topic"] == topic)
@@ -84,6 +89,18 @@ async def _watch(port: int, seconds: float, out: Received,
                         out.channels[ch["id"]] = ch
                         subs.append({"id": ch["id"], "channelId": ch["id"]})
                     await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                elif msg["op"] == "status":
+                    out.statuses.append(msg.get("message", ""))
+                    # foxglove-sdk (0.30.3) queues a new channel's advertisement before it adds
+                    # the channel to the client's table, so a subscription that arrives in between
+                    # is refused as "Unknown channel ID" (docs/bus.md#live-view). A client that
+                    # was advertised the channel subscribes again, as a robust client must.
+                    m = re.fullmatch(r"Unknown channel ID: (\d+)", msg.get("message", ""))
+                    if m and int(m.group(1)) in out.channels and len(out.resubscribed) < 100:
+                        cid = int(m.group(1))
+                        out.resubscribed.append(cid)
+                        await ws.send(json.dumps(
+                            {"op": "subscribe", "subscriptions": [{"id": cid, "channelId": cid}]}))
                 continue
             assert frame[0] == 1, f"unexpected binary opcode {frame[0]}"
             sub_id, log_time = struct.unpack_from("<IQ", frame, 1)
@@ -132,7 +149,8 @@ def test_the_viewer_forwards_the_bus_to_a_foxglove_client_throttled(
     sent = json.loads(pub.stdout().strip().splitlines()[-1])
     assert sent["states"] > 1500 and sent["images"] > 90, sent
     assert all(t in seen.messages for t in expected), (
-        {t: len(m) for t, m in seen.messages.items()}, sorted(c["topic"] for c in seen.channels.values()))
+        {t: len(m) for t, m in seen.messages.items()}, sorted(c["topic"] for c in seen.channels.values()),
+        seen.statuses)
 
     # Server: the SDK's, speaking foxglove.sdk.v1, named after the cell.
     assert seen.server_info["name"] == "psm psm"
@@ -170,6 +188,7 @@ def test_the_viewer_forwards_the_bus_to_a_foxglove_client_throttled(
 
     # A client that connects later gets the latched goal when it subscribes.
     late = watch(port, 10.0, until=lambda r: "psm/goals/person" in r.messages)
+    assert "psm/goals/person" in late.messages, (sorted(late.messages), late.statuses)
     assert [Goal.FromString(p) for _, _, p in late.messages["psm/goals/person"]] == [goal(0)]
 
 
