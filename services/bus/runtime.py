@@ -489,8 +489,12 @@ class Subscription:
         elif delivery == "inline":
             put_kind = zenoh.SampleKind.PUT
 
-            def target(sample: Any) -> None:
+            def on_sample(sample: Any) -> None:
                 self._process(sample, time.time_ns(), put_kind)
+
+            # indirect=False: zenoh-python's default (a bare callable, or indirect=True) hands
+            # every sample to a Python callback thread of its own — one thread wake-up more.
+            target = zenoh.handlers.Callback(on_sample, indirect=False)
         else:
             target = self._on_sample
         if history > 0:
