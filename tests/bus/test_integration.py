@@ -342,6 +342,33 @@ def test_every_delivery_gets_all_messages_in_order(router, delivery) -> None:  #
         a.close()
 
 
+def _native_thread_name() -> str:
+    """The OS name of the calling thread (``/proc/self/task/<tid>/comm``)."""
+    return Path(f"/proc/self/task/{threading.get_native_id()}/comm").read_text().strip()
+
+
+def test_inline_delivery_runs_on_zenohs_receive_thread(router) -> None:  # type: ignore[no-untyped-def]
+    """``"inline"``: the handler runs on Zenoh's receive thread itself (named ``rx-<n>``), not on
+    a worker of the subscription nor on zenoh-python's callback thread (which a bare callable
+    or ``indirect=True`` would use: a thread named after the process, ``python``)."""
+    a = Service("sub", client_config(router)).start()
+    b = Service("pub", client_config(router)).start()
+    names: list[str] = []
+    try:
+        k = Keys()
+        a.subscribe(k.arm_state, lambda _m, _key: names.append(_native_thread_name()), delivery="inline")
+        pub = b.publisher(k.arm_state)
+
+        def arrived() -> bool:
+            pub.put(ArmState(stamp_ns=1, tick=1))
+            return bool(names)
+        assert wait_for(arrived, 10, period_s=0.05)
+    finally:
+        b.close()
+        a.close()
+    assert all(n.startswith("rx-") for n in names), names
+
+
 def test_low_latency_transport_peers_exchange_every_message_in_order() -> None:
     """``zenoh.low_latency`` on both ends (as for the arm<->planner loop): the config reaches
     Zenoh (QoS off, which Zenoh requires) and a peer-to-peer link delivers everything in order."""
