@@ -4,7 +4,8 @@ Run ``python -m benchmarks.peers`` (``--quick`` for a short smoke run, ``--round
 the number of measured round trips per variant). Writes ``benchmarks/results/peers.md`` and
 ``benchmarks/results/peers.json``.
 
-The same pair in three frameworks, all started in one run and measured in alternating blocks:
+The same pair in three frameworks, five variants, all started in one run and measured in
+alternating blocks:
 a *ping* node sends a small message, a *pong* node answers it at once, ping sends the next one
 only after the answer (lockstep) and times each round trip with ``time.perf_counter_ns``.
 
@@ -26,6 +27,11 @@ only after the answer (lockstep) and times each round trip with ``time.perf_coun
    (bounded channel + worker thread, decode, type check) answers with an ``ArmCommand``
    echoing the tick on ``<prefix>/arm/command``, ping's subscription decodes it and checks
    the tick (as :mod:`benchmarks.bus`'s runtime path, with client sessions).
+4. and 5. **raw zenoh-python and the runtime peer to peer** (``raw-p2p``, ``runtime-p2p``): the
+   same two pairs, ping and pong zenoh *peers* that listen on ``tcp/127.0.0.1:0`` and connect to
+   the same router, which tells each about the other (gossip scouting); they then link directly
+   and their messages never pass the router, as between the processes of ``configs/stack.toml``.
+   Each zenoh pair has its own key prefix (:func:`variant_prefix`).
 
 Every ping is driven by the benchmark over a TCP control connection on 127.0.0.1 (outside the
 timed loops): ``run N`` makes it do N round trips and answer with their count and elapsed
@@ -39,11 +45,13 @@ trips; CPU per round trip = utime + stime from ``/proc/<pid>/stat`` of every pro
 variant (raw and runtime: router, ping, pong; dora: the ``dora run`` process and all its
 descendants), read by the benchmark right before and after each block, summed over the blocks,
 divided by the round trips (``/proc`` CPU times advance in clock ticks, 10 ms: the per-block
-rounding averages out over the blocks). The router is shared by the two zenoh variants; its CPU
-counts for the variant whose block is running. The CPU the idle variants' processes use while
-another variant's block runs is reported too (it competes for the same 2 cores).
+rounding averages out over the blocks). The router is shared by the two routed zenoh variants;
+its CPU counts for the variant whose block is running (the peer-to-peer variants do not use it).
+The CPU the idle variants' processes use while another variant's block runs is reported too (it
+competes for the same 2 cores).
 
-Target: project runtime p50 / dora-rs p50 ≤ 0.7. Also reported: runtime p50 / raw zenoh p50,
+Target: project runtime p50 / dora-rs p50 ≤ 0.7, the runtime as the stack deploys it (peer to
+peer; the routed ratio is reported beside it). Also reported: runtime p50 / raw zenoh p50,
 and the figures measured earlier on this machine (dora-rs 2,740 round trips/s, p50 342 µs; raw
 zenoh through a router 4,660/s, p50 191 µs) next to this run's.
 
@@ -85,13 +93,21 @@ from services.supervisor import (
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 
-VARIANTS: tuple[str, ...] = ("dora", "raw", "runtime")
+VARIANTS: tuple[str, ...] = ("dora", "raw", "runtime", "raw-p2p", "runtime-p2p")
+#: The zenoh variants: (the pair's code, zenoh mode of ping and pong).
+ZENOH_VARIANTS: dict[str, tuple[str, str]] = {
+    "raw": ("raw", "client"), "runtime": ("runtime", "client"),
+    "raw-p2p": ("raw", "peer"), "runtime-p2p": ("runtime", "peer"),
+}
 LABELS = {
     "dora": "dora-rs (`dora run`, 2 Python nodes)",
     "raw": "raw zenoh-python via router",
     "runtime": "project runtime via router",
+    "raw-p2p": "raw zenoh-python peer to peer",
+    "runtime-p2p": "project runtime peer to peer (as the stack runs)",
 }
-#: Target: project runtime p50 / dora-rs p50.
+#: Target: project runtime p50 / dora-rs p50, the runtime as ``configs/stack.toml`` deploys it
+#: (peers linked directly; the routed variant is reported beside it).
 TARGET_RATIO = 0.7
 #: Figures measured earlier on this machine (same pair), shown beside this run's.
 REFERENCE = {
@@ -106,8 +122,16 @@ STARTUP_TIMEOUT_S = 90.0
 CHILD_MAX_S = 1800.0  #: a child process ends by itself after this long
 DORA_FILLER = 19  #: int64 values after the tick in the dora payload (160 bytes in all)
 PREFIX = "peers"
-RAW_PING_KEY = f"{PREFIX}/raw/ping"
-RAW_PONG_KEY = f"{PREFIX}/raw/pong"
+
+
+def variant_name(kind: str, mode: str) -> str:
+    """The variant of the zenoh pair ``kind`` (raw, runtime) whose nodes run in zenoh ``mode``."""
+    return kind if mode == "client" else f"{kind}-p2p"
+
+
+def variant_prefix(variant: str) -> str:
+    """The key prefix of a zenoh variant's pair (each pair has its own: they run side by side)."""
+    return PREFIX + variant.replace("-", "")
 
 
 # --------------------------------------------------------------------------------------------
@@ -184,11 +208,22 @@ def summarize(rtt_us: Sequence[float], elapsed_s: float, cpu_s: dict[str, float]
 
 
 def compare(variants: dict[str, dict[str, Any]], target: float = TARGET_RATIO) -> dict[str, Any]:
-    """Ratios of the project runtime to dora-rs and to raw zenoh, and the target's verdict."""
+    """Ratios of the project runtime to dora-rs and to raw zenoh, and the target's verdict (on
+    the runtime as the stack deploys it: peer to peer)."""
     rt, dora, raw = variants["runtime"], variants["dora"], variants["raw"]
-    ratio = rt["p50_us"] / dora["p50_us"]
+    rt_p2p, raw_p2p = variants["runtime-p2p"], variants["raw-p2p"]
+    ratio = rt_p2p["p50_us"] / dora["p50_us"]
     return {
-        "runtime_over_dora_p50": ratio,
+        "runtime_p2p_over_dora_p50": ratio,
+        "runtime_p2p_over_dora_p99": rt_p2p["p99_us"] / dora["p99_us"],
+        "runtime_p2p_over_dora_cpu": rt_p2p["cpu_per_round_trip_us"] / dora["cpu_per_round_trip_us"],
+        "runtime_p2p_over_dora_rate": rt_p2p["round_trips_per_s"] / dora["round_trips_per_s"],
+        "runtime_p2p_over_raw_p2p_p50": rt_p2p["p50_us"] / raw_p2p["p50_us"],
+        "runtime_p2p_over_raw_p2p_p99": rt_p2p["p99_us"] / raw_p2p["p99_us"],
+        "runtime_p2p_over_raw_p2p_cpu": (rt_p2p["cpu_per_round_trip_us"]
+                                         / raw_p2p["cpu_per_round_trip_us"]),
+        "raw_p2p_over_dora_p50": raw_p2p["p50_us"] / dora["p50_us"],
+        "runtime_over_dora_p50": rt["p50_us"] / dora["p50_us"],
         "runtime_over_dora_p99": rt["p99_us"] / dora["p99_us"],
         "runtime_over_dora_cpu": rt["cpu_per_round_trip_us"] / dora["cpu_per_round_trip_us"],
         "runtime_over_dora_rate": rt["round_trips_per_s"] / dora["round_trips_per_s"],
@@ -204,8 +239,10 @@ def compare(variants: dict[str, dict[str, Any]], target: float = TARGET_RATIO) -
 def verdict_text(cmp: dict[str, Any]) -> str:
     """One plain sentence: the target, the measured ratio, met or not met."""
     word = "met" if cmp["met"] else "NOT met"
-    return (f"Target project runtime p50 / dora-rs p50 ≤ {cmp['target_runtime_over_dora_p50']:.2f}×: "
-            f"measured {cmp['runtime_over_dora_p50']:.2f}× — **{word}**.")
+    return (f"Target project runtime p50 / dora-rs p50 ≤ {cmp['target_runtime_over_dora_p50']:.2f}×, "
+            f"the runtime as the stack deploys it (peer to peer): measured "
+            f"{cmp['runtime_p2p_over_dora_p50']:.2f}× — **{word}** (through the router: "
+            f"{cmp['runtime_over_dora_p50']:.2f}×).")
 
 
 def _f(v: float, nd: int = 0) -> str:
@@ -250,13 +287,24 @@ def render_markdown(res: dict[str, Any]) -> str:
         "",
         "| ratio | p50 | p99 | CPU per round trip | round trips/s |",
         "|---|---:|---:|---:|---:|",
-        f"| **project runtime / dora-rs** | **{cmp['runtime_over_dora_p50']:.2f}×** | "
+        f"| **project runtime peer to peer / dora-rs** | **{cmp['runtime_p2p_over_dora_p50']:.2f}×** | "
+        f"{cmp['runtime_p2p_over_dora_p99']:.2f}× | {cmp['runtime_p2p_over_dora_cpu']:.2f}× | "
+        f"{cmp['runtime_p2p_over_dora_rate']:.2f}× |",
+        f"| project runtime peer to peer / raw zenoh peer to peer | "
+        f"{cmp['runtime_p2p_over_raw_p2p_p50']:.2f}× | {cmp['runtime_p2p_over_raw_p2p_p99']:.2f}× | "
+        f"{cmp['runtime_p2p_over_raw_p2p_cpu']:.2f}× | "
+        f"{v['runtime-p2p']['round_trips_per_s'] / v['raw-p2p']['round_trips_per_s']:.2f}× |",
+        f"| raw zenoh peer to peer / dora-rs | {cmp['raw_p2p_over_dora_p50']:.2f}× | "
+        f"{v['raw-p2p']['p99_us'] / v['dora']['p99_us']:.2f}× | "
+        f"{v['raw-p2p']['cpu_per_round_trip_us'] / v['dora']['cpu_per_round_trip_us']:.2f}× | "
+        f"{v['raw-p2p']['round_trips_per_s'] / v['dora']['round_trips_per_s']:.2f}× |",
+        f"| project runtime via router / dora-rs | {cmp['runtime_over_dora_p50']:.2f}× | "
         f"{cmp['runtime_over_dora_p99']:.2f}× | {cmp['runtime_over_dora_cpu']:.2f}× | "
         f"{cmp['runtime_over_dora_rate']:.2f}× |",
-        f"| project runtime / raw zenoh | {cmp['runtime_over_raw_p50']:.2f}× | "
+        f"| project runtime / raw zenoh, both via router | {cmp['runtime_over_raw_p50']:.2f}× | "
         f"{cmp['runtime_over_raw_p99']:.2f}× | {cmp['runtime_over_raw_cpu']:.2f}× | "
         f"{v['runtime']['round_trips_per_s'] / v['raw']['round_trips_per_s']:.2f}× |",
-        f"| raw zenoh / dora-rs | {cmp['raw_over_dora_p50']:.2f}× | "
+        f"| raw zenoh via router / dora-rs | {cmp['raw_over_dora_p50']:.2f}× | "
         f"{v['raw']['p99_us'] / v['dora']['p99_us']:.2f}× | "
         f"{v['raw']['cpu_per_round_trip_us'] / v['dora']['cpu_per_round_trip_us']:.2f}× | "
         f"{v['raw']['round_trips_per_s'] / v['dora']['round_trips_per_s']:.2f}× |",
@@ -266,7 +314,7 @@ def render_markdown(res: dict[str, Any]) -> str:
         "Replies that were not the answer to the message just sent: "
         + ", ".join(f"{n} {v[n]['wrong_replies']}" for n in VARIANTS) + ".",
         "",
-        "While one variant's block ran, the processes of the other two (idle, waiting for their "
+        "While one variant's block ran, the processes of the others (idle, waiting for their "
         "turn) used "
         + ", ".join(f"{v[n]['other_variants_cpu_pct_during_blocks']:.1f} % of one core during "
                     f"{n}'s blocks" for n in VARIANTS)
@@ -304,8 +352,15 @@ def render_markdown(res: dict[str, Any]) -> str:
         "off), express publishers, real-time priority, blocking congestion control; 155-byte "
         "ArmState bytes echoed by pong's callback.",
         "- project runtime: `Service` clients of the same router; typed `ArmState` on "
-        f"`{PREFIX}/arm/state`, answered by an `ArmCommand` echoing the tick on "
-        f"`{PREFIX}/arm/command` (default delivery: bounded channel + worker thread).",
+        "`<prefix>/arm/state`, answered by an `ArmCommand` echoing the tick on "
+        "`<prefix>/arm/command` (default delivery: bounded channel + worker thread).",
+        "- peer to peer (`-p2p`): the same two pairs with ping and pong zenoh peers that listen "
+        "on 127.0.0.1 and connect to the same router, which tells each about the other "
+        "(gossip): their messages then go directly from one to the other, as between the "
+        "processes of `configs/stack.toml`. The router carries no message of theirs, and its "
+        "CPU is not counted for them.",
+        "- each zenoh pair has its own keys (prefix "
+        + ", ".join(f"`{variant_prefix(n)}`" for n in ZENOH_VARIANTS) + ").",
         "",
     ]
     return "\n".join(lines)
@@ -407,13 +462,15 @@ def _wait_terminated(max_s: float) -> None:
     stop.wait(max_s)
 
 
-def _client_cfg(endpoint: str, prefix: str = PREFIX) -> Any:
-    """Service config of a zenoh client of the router at ``endpoint``, multicast off."""
+def _bus_cfg(endpoint: str, mode: str, prefix: str) -> Any:
+    """Service config of a zenoh ``mode`` session (client, or peer listening on 127.0.0.1) that
+    connects to the router at ``endpoint``, multicast off."""
     from services.bus.config import ServiceConfig, load_config
 
+    listen = ["tcp/127.0.0.1:0"] if mode == "peer" else []
     return load_config(ServiceConfig, env={}, overrides={
-        "zenoh.mode": "client", "zenoh.connect": [endpoint], "zenoh.multicast": False,
-        "prefix": prefix, "log_level": "WARNING"})
+        "zenoh.mode": mode, "zenoh.connect": [endpoint], "zenoh.listen": listen,
+        "zenoh.multicast": False, "prefix": prefix, "log_level": "WARNING"})
 
 
 def _express(session: Any, key: str) -> Any:
@@ -515,11 +572,13 @@ def _dora_pong(max_seconds: float) -> int:
     return 0
 
 
-def _raw_ping(endpoint: str, control: str, out_file: Path, max_seconds: float) -> int:
+def _raw_ping(endpoint: str, mode: str, control: str, out_file: Path, max_seconds: float) -> int:
     from services.bus.runtime import open_session
 
-    session = open_session(_client_cfg(endpoint).zenoh)
-    pub = _express(session, RAW_PING_KEY)
+    variant = variant_name("raw", mode)
+    prefix = variant_prefix(variant)
+    session = open_session(_bus_cfg(endpoint, mode, prefix).zenoh)
+    pub = _express(session, f"{prefix}/ping")
     event = threading.Event()
     reply: list[bytes] = [b""]
 
@@ -527,7 +586,7 @@ def _raw_ping(endpoint: str, control: str, out_file: Path, max_seconds: float) -
         reply[0] = sample.payload.to_bytes()
         event.set()
 
-    sub = session.declare_subscriber(RAW_PONG_KEY, on_pong)
+    sub = session.declare_subscriber(f"{prefix}/pong", on_pong)
     _wait_for(lambda: bool(pub.matching_status.matching), "raw pong")
     time.sleep(0.3)
     pool = [_state_bytes(i) for i in range(POOL)]
@@ -541,19 +600,20 @@ def _raw_ping(endpoint: str, control: str, out_file: Path, max_seconds: float) -
         return reply[0] == payload
 
     try:
-        return _ping_loop("raw", control, out_file, one, max_seconds)
+        return _ping_loop(variant, control, out_file, one, max_seconds)
     finally:
         sub.undeclare()
         pub.undeclare()
         session.close()
 
 
-def _raw_pong(endpoint: str, max_seconds: float) -> int:
+def _raw_pong(endpoint: str, mode: str, max_seconds: float) -> int:
     from services.bus.runtime import open_session
 
-    session = open_session(_client_cfg(endpoint).zenoh)
-    pub = _express(session, RAW_PONG_KEY)
-    sub = session.declare_subscriber(RAW_PING_KEY, lambda s: pub.put(s.payload))
+    prefix = variant_prefix(variant_name("raw", mode))
+    session = open_session(_bus_cfg(endpoint, mode, prefix).zenoh)
+    pub = _express(session, f"{prefix}/pong")
+    sub = session.declare_subscriber(f"{prefix}/ping", lambda s: pub.put(s.payload))
     print("ready", flush=True)
     _wait_terminated(max_seconds)
     sub.undeclare()
@@ -561,11 +621,12 @@ def _raw_pong(endpoint: str, max_seconds: float) -> int:
     return 0
 
 
-def _runtime_ping(endpoint: str, control: str, out_file: Path, max_seconds: float) -> int:
+def _runtime_ping(endpoint: str, mode: str, control: str, out_file: Path, max_seconds: float) -> int:
     from services.bus.messages import ArmCommand, ArmState
     from services.bus.runtime import Service
 
-    svc = Service("ping", _client_cfg(endpoint)).start()
+    variant = variant_name("runtime", mode)
+    svc = Service("ping", _bus_cfg(endpoint, mode, variant_prefix(variant))).start()
     event = threading.Event()
     expected = [-1]
     matched = [False]
@@ -590,16 +651,16 @@ def _runtime_ping(endpoint: str, control: str, out_file: Path, max_seconds: floa
         return matched[0]
 
     try:
-        return _ping_loop("runtime", control, out_file, one, max_seconds)
+        return _ping_loop(variant, control, out_file, one, max_seconds)
     finally:
         svc.close()
 
 
-def _runtime_pong(endpoint: str, max_seconds: float) -> int:
+def _runtime_pong(endpoint: str, mode: str, max_seconds: float) -> int:
     from services.bus.messages import ArmCommand, ArmState
     from services.bus.runtime import Service
 
-    svc = Service("pong", _client_cfg(endpoint)).start()
+    svc = Service("pong", _bus_cfg(endpoint, mode, variant_prefix(variant_name("runtime", mode)))).start()
     cmd = svc.publisher(svc.keys.arm_command)
 
     def on_state(state: ArmState, _key: str) -> None:
@@ -712,13 +773,13 @@ def run(round_trips: int, warmup: int, per_block: int = PER_BLOCK,
                                     "--log-level", "WARNING"]), workdir / "router.log")
             _wait_port(port, 30, procs["router"])
             mx = ["--max-seconds", str(child_max)]
-            for v in ("raw", "runtime"):
+            for v, (kind, mode) in ZENOH_VARIANTS.items():
                 procs[f"{v}-pong"] = _spawn(workdir, f"{v}-pong", "-m", "benchmarks.peers", "--role",
-                                            f"{v}-pong", "--endpoint", ep, *mx)
+                                            f"{kind}-pong", "--mode", mode, "--endpoint", ep, *mx)
                 _line(procs[f"{v}-pong"], "ready", 60)
                 procs[f"{v}-ping"] = _spawn(
-                    workdir, f"{v}-ping", "-m", "benchmarks.peers", "--role", f"{v}-ping",
-                    "--endpoint", ep, "--control", control,
+                    workdir, f"{v}-ping", "-m", "benchmarks.peers", "--role", f"{kind}-ping",
+                    "--mode", mode, "--endpoint", ep, "--control", control,
                     "--out-file", str(workdir / f"{v}-ping.json"), *mx)
             procs["dora"] = _start_dora(workdir, control, child_max)
             deadline = time.monotonic() + STARTUP_TIMEOUT_S
@@ -745,6 +806,8 @@ def run(round_trips: int, warmup: int, per_block: int = PER_BLOCK,
                          **{_dora_name(p, procs["dora"].pid): p for p in dora_nodes}},
                 **{v: {"router": procs["router"].pid, "ping": procs[f"{v}-ping"].pid,
                        "pong": procs[f"{v}-pong"].pid} for v in ("raw", "runtime")},
+                **{v: {"ping": procs[f"{v}-ping"].pid, "pong": procs[f"{v}-pong"].pid}
+                   for v in ("raw-p2p", "runtime-p2p")},
             }
             if pings["dora"].pid not in dora_nodes:
                 raise RuntimeError(f"dora ping {pings['dora'].pid} is not a child of dora run")
@@ -785,7 +848,7 @@ def run(round_trips: int, warmup: int, per_block: int = PER_BLOCK,
             for p in pings.values():
                 p.close()
             listener.close()
-            for name in ("raw-ping", "runtime-ping", "raw-pong", "runtime-pong"):
+            for name in [f"{v}-{r}" for r in ("ping", "pong") for v in ZENOH_VARIANTS]:
                 if name in procs:
                     if procs[name].wait(5) is None:
                         procs[name].stop(10)
@@ -844,6 +907,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--role", choices=("raw-ping", "raw-pong", "runtime-ping", "runtime-pong"),
                     help=argparse.SUPPRESS)
     ap.add_argument("--endpoint", help=argparse.SUPPRESS)
+    ap.add_argument("--mode", choices=("client", "peer"), default="client", help=argparse.SUPPRESS)
     ap.add_argument("--control", help=argparse.SUPPRESS)
     ap.add_argument("--out-file", type=Path, help=argparse.SUPPRESS)
     ap.add_argument("--max-seconds", type=float, default=CHILD_MAX_S, help=argparse.SUPPRESS)
@@ -854,13 +918,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.dora_node == "pong":
         return _dora_pong(mx)
     if args.role == "raw-ping":
-        return _raw_ping(args.endpoint, args.control, args.out_file, mx)
+        return _raw_ping(args.endpoint, args.mode, args.control, args.out_file, mx)
     if args.role == "raw-pong":
-        return _raw_pong(args.endpoint, mx)
+        return _raw_pong(args.endpoint, args.mode, mx)
     if args.role == "runtime-ping":
-        return _runtime_ping(args.endpoint, args.control, args.out_file, mx)
+        return _runtime_ping(args.endpoint, args.mode, args.control, args.out_file, mx)
     if args.role == "runtime-pong":
-        return _runtime_pong(args.endpoint, mx)
+        return _runtime_pong(args.endpoint, args.mode, mx)
 
     round_trips = args.round_trips or (1500 if args.quick else 15000)
     warmup = args.warmup if args.warmup is not None else (300 if args.quick else 1000)
@@ -884,7 +948,7 @@ def main(argv: list[str] | None = None) -> int:
     res["load_avg_end"] = ", ".join(f"{v:.2f}" for v in os.getloadavg())
     for v in VARIANTS:
         s = res["variants"][v]
-        print(f"{v:8s} {s['round_trips_per_s']:8.0f} rt/s  p50 {s['p50_us']:6.0f} µs  p99 "
+        print(f"{v:12s} {s['round_trips_per_s']:8.0f} rt/s  p50 {s['p50_us']:6.0f} µs  p99 "
               f"{s['p99_us']:6.0f} µs  max {s['max_us']:7.0f} µs  cpu/rt "
               f"{s['cpu_per_round_trip_us']:5.0f} µs", flush=True)
     print(verdict_text(res["comparison"]).replace("**", ""), flush=True)

@@ -28,7 +28,9 @@ b. **Closed loop, lockstep.** ``psm serve router``, ``psm plan`` and ``psm arm``
    processes (``services.supervisor.ManagedProcess``, ``psm_argv``: the code of this checkout),
    all reading one stack file written by :func:`bench_stack_file` with the arm's and planner's
    fields of ``configs/stack.toml`` (500 Hz, start pose, ``rt_priority``, ``watch_services``)
-   on a fresh loopback port, Zenoh clients of the router, multicast off. No camera and no goal
+   on a fresh loopback port, with the stack file's bus topology
+   (:func:`benchmarks.stack.zenoh_table`: peers that find each other through the router and
+   link directly), multicast off. No camera and no goal
    tracker: the planner runs a copy of ``configs/feeding.toml`` whose live ``person`` step is
    made static (``live = false``: the goal is ``scene.person``; :func:`static_person_task`), so
    the task is the same five steps without a goal source. The planner starts first (its
@@ -37,9 +39,9 @@ b. **Closed loop, lockstep.** ``psm serve router``, ``psm plan`` and ``psm arm``
    last, received by this process): from 0.5 s after the task started to the last status before
    it was done; the arm's ``stats_file`` gives its whole-loop counts and the state→command
    latency. The bound: raw zenoh-python ping-pong (``benchmarks.peers``'s raw ping and pong,
-   express publishers, 155-byte ArmState bytes) through **the same router process**, once
-   before the task run and once after it: 1 / round-trip p50. Target: arm ticks/s ≥ 0.5× the
-   bound.
+   express publishers, 155-byte ArmState bytes) on **the same router process**, in the same
+   topology as the arm and the planner (peers linked directly), once before the task run and
+   once after it: 1 / round-trip p50. Target: arm ticks/s ≥ 0.5× the bound.
 c. **Closed loop, realtime 500 Hz.** The same processes with ``clock = "realtime"`` (arm and
    planner at ``SCHED_FIFO`` ``rt_priority`` of ``configs/stack.toml``). A bare timer loop
    (:func:`benchmarks.arm.bench_timer`, 2 ms deadlines with ``time.sleep``, in 0.25 s chunks)
@@ -82,6 +84,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.stack import zenoh_table
 from services.supervisor import ManagedProcess, cpu_seconds, free_port, psm_argv
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -202,11 +205,7 @@ prefix = {j(prefix)}
 clock = {j(clock)}
 log_level = {j(log_level)}
 status_period_s = 0.5
-[zenoh]
-mode = "client"
-connect = [{j(endpoint)}]
-multicast = false
-[stack]
+{zenoh_table(endpoint)}[stack]
 name = "planner-bench"
 startup_timeout_s = {STARTUP_TIMEOUT_S}
 stop_timeout_s = 15.0
@@ -484,10 +483,15 @@ def bench_tick_cost(reps: int) -> dict[str, Any]:
 
 
 def raw_pingpong(endpoint: str, workdir: Path, round_trips: int, warmup: int, tag: str) -> dict[str, Any]:
-    """Raw zenoh-python ping-pong through the router at ``endpoint`` (``benchmarks.peers``'s raw
-    ping and pong roles, driven over its control protocol): round-trip percentiles, rate, bound."""
+    """Raw zenoh-python ping-pong on the router at ``endpoint``, in the topology of the stack
+    (:func:`benchmarks.stack.deployed_bus`: peers linked directly, or clients of the router)
+    (``benchmarks.peers``'s raw ping and pong roles, driven over its control protocol):
+    round-trip percentiles, rate, bound."""
     from benchmarks.bus import _line, _spawn
-    from benchmarks.peers import PER_BLOCK, _Ping, block_sizes
+    from benchmarks.peers import PER_BLOCK, _Ping, block_sizes, variant_name
+    from benchmarks.stack import deployed_bus
+
+    mode = deployed_bus()[0]
 
     listener = socket.create_server(("127.0.0.1", 0))
     listener.settimeout(60)
@@ -495,17 +499,18 @@ def raw_pingpong(endpoint: str, workdir: Path, round_trips: int, warmup: int, ta
     out_file = workdir / f"raw-ping-{tag}.json"
     mx = ["--max-seconds", "600"]
     pong = _spawn(workdir, f"raw-pong-{tag}", "-m", "benchmarks.peers", "--role", "raw-pong",
-                  "--endpoint", endpoint, *mx)
+                  "--mode", mode, "--endpoint", endpoint, *mx)
     ping: ManagedProcess | None = None
     conn = None
     try:
         _line(pong, "ready", 60)
         ping = _spawn(workdir, f"raw-ping-{tag}", "-m", "benchmarks.peers", "--role", "raw-ping",
-                      "--endpoint", endpoint, "--control", control, "--out-file", str(out_file), *mx)
+                      "--mode", mode, "--endpoint", endpoint, "--control", control, "--out-file",
+                      str(out_file), *mx)
         c, _ = listener.accept()
         c.settimeout(60)
         conn = _Ping(c)
-        if conn.variant != "raw":
+        if conn.variant != variant_name("raw", mode):
             raise RuntimeError(f"unexpected ping: {conn.variant!r}")
         conn.ask(f"run {warmup} 0")
         elapsed_ns = 0
@@ -656,7 +661,8 @@ class CpuSampler:
 
 def closed_loop(clock: str, workdir: Path, *, round_trips: int = 0, warmup: int = 0) -> dict[str, Any]:
     """Router + planner + arm on ``clock`` (see the module docstring, parts b and c); with
-    ``round_trips`` the raw ping-pong bound through the same router before and after the task."""
+    ``round_trips`` the raw ping-pong bound on the same router, in the same topology, before and
+    after the task."""
     from services.tasks.feeding import DEFAULT_FEEDING_CONFIG, load_feeding, static_person_task
 
     dep = deployed()
@@ -896,7 +902,8 @@ def render_markdown(res: dict[str, Any]) -> str:
         x = v["lockstep"]
         lines.append(
             f"| (b) lockstep arm ticks/s ≥ {LOCKSTEP_RATIO_TARGET}× the raw zenoh ping-pong bound "
-            f"(1 / RTT p50, same router) | {_f(x['value'])} ticks/s vs bound {_f(x['reference'])}/s "
+            f"(1 / RTT p50, same router and topology) | {_f(x['value'])} ticks/s vs bound "
+            f"{_f(x['reference'])}/s "
             f"(RTT p50 {_f(x['pingpong_p50_us'])} µs): **{x['ratio']:.2f}×** | {_ok(x['ok'])} |")
     if "realtime_missed" in v:
         m = v["realtime_missed"]
@@ -973,7 +980,7 @@ def render_markdown(res: dict[str, Any]) -> str:
         for tag in ("before", "after"):
             p = b.get(f"pingpong_{tag}")
             if p:
-                lines.append(f"| raw zenoh ping-pong {tag} the task, same router: RTT | "
+                lines.append(f"| raw zenoh ping-pong {tag} the task, same router and topology: RTT | "
                              f"{_lat(p)}; {_f(p['round_trips_per_s'])} round trips/s; bound 1/p50 "
                              f"{_f(p['bound_per_s'])}/s |")
         cpu = b.get("cpu", {})

@@ -3,7 +3,9 @@
 Run ``python -m benchmarks.stack`` (``--seconds 20`` per scenario, ``--quick`` for 8 s). Writes
 ``benchmarks/results/stack.md`` and ``benchmarks/results/stack.json``.
 
-Scenarios (every service a Zenoh client of one router on 127.0.0.1, multicast off):
+Scenarios (every service on the bus as ``configs/stack.toml`` puts it, :func:`deployed_bus`:
+Zenoh peers connected to one router on 127.0.0.1, which they find each other through, linked
+directly on loopback; multicast off):
 
 p. **platform**: router, a *null arm* (:func:`_null_arm_main`: the arm's bus traffic — a
    pre-encoded ``ArmState`` every 2 ms by the wall clock, the commands received in a callback —
@@ -106,17 +108,38 @@ class Stack:
             self.supervisor.shutdown()
 
 
+def deployed_bus() -> tuple[str, list[str]]:
+    """The Zenoh mode and listen endpoints of the default stack file's processes: the topology
+    that ``psm up`` runs and the benchmarks measure (peers linked directly, the router for
+    discovery)."""
+    from services.stack import DEFAULT_STACK
+
+    z = load_stack(DEFAULT_STACK).configs["arm"].zenoh
+    return z.mode, list(z.listen)
+
+
+def zenoh_table(endpoint: str) -> str:
+    """A stack file's ``[zenoh]`` table: :func:`deployed_bus` connected to the router at
+    ``endpoint``, multicast off."""
+    mode, listen = deployed_bus()
+    return (f"[zenoh]\nmode = {json.dumps(mode)}\nconnect = [{json.dumps(endpoint)}]\n"
+            f"listen = {json.dumps(listen)}\nmulticast = false\n")
+
+
+def bus_flags(endpoint: str) -> list[str]:
+    """:func:`zenoh_table` as the command-line flags of a process that reads no stack file."""
+    mode, listen = deployed_bus()
+    return ["--mode", mode, "--connect", endpoint, *(f for ep in listen for f in ("--listen", ep)),
+            "--no-multicast"]
+
+
 def stack_header(name: str, endpoint: str, workdir: Path) -> str:
-    """The shared part of a benchmark's stack file: bus settings (a Zenoh client of the router at
-    ``endpoint``, multicast off, realtime clock) and the ``[stack]`` table (logs in ``workdir``)."""
+    """The shared part of a benchmark's stack file: bus settings (:func:`zenoh_table`, realtime
+    clock) and the ``[stack]`` table (logs in ``workdir``)."""
     return f"""prefix = "psm"
 clock = "realtime"
 log_level = "WARNING"
-[zenoh]
-mode = "client"
-connect = [{json.dumps(endpoint)}]
-multicast = false
-[stack]
+{zenoh_table(endpoint)}[stack]
 name = {json.dumps(name)}
 startup_timeout_s = 60.0
 stop_timeout_s = 15.0
@@ -189,9 +212,9 @@ def start_stack(
         raise
     stack.procs = {row.name: row.proc for row in sup.rows}
     if "null_arm" in services:
-        client = ["--mode", "client", "--connect", endpoint, "--no-multicast", "--log-level", "WARNING"]
+        bus = [*bus_flags(endpoint), "--log-level", "WARNING"]
         stack.procs["null_arm"] = ManagedProcess(
-            "null_arm", [sys.executable, "-m", "benchmarks.stack", "--null-arm", *client],
+            "null_arm", [sys.executable, "-m", "benchmarks.stack", "--null-arm", *bus],
             workdir / "null_arm.log", cpu_affinity=cpus.arm if cpus else (),
         )
     return stack

@@ -48,19 +48,21 @@ def _planner(m: dict[str, Any]) -> tuple[str, str, str]:
 
 def _router(m: dict[str, Any], sig: str) -> tuple[str, str, str]:
     (o,) = [o for o in m["outages"] if o["signal"] == sig]
+    during = m["commands_answering_ticks_during_outages"][m["outages"].index(o)]
     return (
-        "every service (zenoh client) keeps its session, reconnects and declares its subscriptions "
-        "and liveliness token again; the planner follows the arm's stream again and restarts the "
-        "step from the arm's state; the task completes; one valid recording",
-        f"router back {o['router_back_after_s']:.2f} s after the {sig}; arm states "
+        "the stack's processes are peers linked directly: the arm, the planner and the recorder "
+        "go on while the router is down (planner commands answering ticks of the outage: "
+        f"{during}); a client of the router keeps its session, reconnects and declares its "
+        "subscriptions again; the task completes; one valid recording",
+        f"router back {o['router_back_after_s']:.2f} s after the {sig}; a client sees arm states "
         f"{_ms(o['states_after_router_back_s'])} and planner commands "
         f"{_ms(o['loop_resumed_after_router_back_s'])} after it is back",
-        f"**{m['lost_while_connected']}** published while connected: of {m['seq_published']} sequence "
-        f"numbers {m['seq_recorded']} recorded, {m['seq_not_delivered_during_outages']} published while "
-        f"the router was down (both outages), {m['seq_in_transit_when_the_router_died']} in transit "
-        f"through the router when it was killed (put < 20 ms before), "
-        f"{m['seq_put_after_the_recorder_stopped']} after the recorder stopped; arm ticks missing "
-        f"outside the outages {m['arm_ticks_missing_outside_outages']}"
+        f"**{m['lost_while_connected']}** published while connected: of a client's "
+        f"{m['seq_published']} sequence numbers {m['seq_recorded']} recorded, "
+        f"{m['seq_not_delivered_during_outages']} published while the router was down (both "
+        f"outages), {m['seq_in_transit_when_the_router_died']} in transit through the router when it "
+        f"was killed (put < 20 ms before), {m['seq_put_after_the_recorder_stopped']} after the "
+        f"recorder stopped; arm ticks missing {m['arm_ticks_missing_in_all']}, outages included"
         f" (all among the {m['arm_ticks_skipped_unpublished']} the late realtime arm never published)",
     )
 

@@ -50,7 +50,7 @@ from pathlib import Path
 from typing import Any
 
 from services.bus.config import ConfigError, env_var_name
-from services.stack import DEFAULT_STACK, ProcessSpec, Stack, load_stack
+from services.stack import DEFAULT_STACK, ProcessSpec, Stack, load_stack, routed_client_env
 
 __all__ = ["COMPOSE_DIR", "compose_files", "register", "write_compose"]
 
@@ -150,6 +150,7 @@ class _Builder:
             output = Path(cfg.recorder.output).name  # type: ignore[attr-defined]
             env[env_var_name("recorder.output")] = f"/data/{output}"
         if self.acl and not _is_router(p):
+            env.update(routed_client_env())
             env[env_var_name("zenoh.user")] = p.name
             env[env_var_name("zenoh.password_file")] = f"/run/secrets/psm_{p.name}"
         return env

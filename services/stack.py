@@ -8,8 +8,9 @@ says which processes run, in start order::
     prefix = "psm"
     clock = "realtime"
     [zenoh]
-    mode = "client"
+    mode = "peer"
     connect = ["tcp/127.0.0.1:7447"]
+    listen = ["tcp/127.0.0.1:0"]
     multicast = false
 
     [[stack.processes]]
@@ -33,6 +34,7 @@ anything starts) and that every table belongs to some process.
 from __future__ import annotations
 
 import importlib
+import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,6 +47,7 @@ from services.bus.config import (
     Section,
     ServiceConfig,
     StrList,
+    env_var_name,
     load_config,
     read_toml,
 )
@@ -65,6 +68,18 @@ __all__ = [
 
 #: The stack the README's demo runs when no stack file is given.
 DEFAULT_STACK = Path(__file__).resolve().parents[1] / "configs" / "stack.toml"
+
+#: The bus settings of every process but the router when the router enforces access control
+#: (``[stack] access_control``, and every docker compose deployment): a client of the router that
+#: listens on nothing, so that every message passes the router's rules. A peer would link to the
+#: other peers directly, past them. Applied over the stack file and the environment; an explicit
+#: ``--set zenoh.mode=peer`` is an error instead.
+ROUTED_CLIENT: dict[str, Any] = {"zenoh.mode": "client", "zenoh.listen": []}
+
+
+def routed_client_env() -> dict[str, str]:
+    """:data:`ROUTED_CLIENT` as the environment variables of a process (``PSM_ZENOH__MODE``, ...)."""
+    return {env_var_name(k): v if isinstance(v, str) else json.dumps(v) for k, v in ROUTED_CLIENT.items()}
 
 
 @dataclass(frozen=True)
@@ -287,7 +302,10 @@ def load_stack(
         if not p.enabled:
             continue
         try:
-            configs[p.name] = load_config(cls, path, overrides=_overrides_for(cls, overrides), env=env)
+            own = _overrides_for(cls, overrides)
+            if config.stack.access_control and not p.is_router:
+                own = {**ROUTED_CLIENT, **own}
+            configs[p.name] = load_config(cls, path, overrides=own, env=env)
         except ConfigError as exc:
             raise ConfigError(exc.path, f"{exc.reason} (process {p.name!r})") from None
     for key, value in data.items():

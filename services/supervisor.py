@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TextIO
 
-from services.stack import ProcessSpec, Stack
+from services.stack import ProcessSpec, Stack, routed_client_env
 
 __all__ = [
     "SUPERVISOR_PID_ENV",
@@ -452,7 +452,8 @@ class Supervisor:
 
     def _env_of(self, spec: ProcessSpec) -> dict[str, str]:
         """The environment of a process: the stack's, plus under access control the router's
-        users file and access control, or the process's role credentials (its name)."""
+        users file and access control, or the process's role credentials (its name) and the
+        client settings every message through the router needs (:data:`services.stack.ROUTED_CLIENT`)."""
         env = dict(self.env)
         if self.secrets_dir is None:
             return env
@@ -463,6 +464,7 @@ class Supervisor:
             env[env_var_name("router.access_control")] = "true"
             env[env_var_name("router.users_file")] = str(self.secrets_dir / USERS_FILE)
         else:
+            env.update(routed_client_env())
             env[env_var_name("zenoh.user")] = spec.name
             env[env_var_name("zenoh.password_file")] = str(password_file(self.secrets_dir, spec.name))
         return env

@@ -40,9 +40,14 @@ def _variant(p50: float, rate: float = 3000.0, cpu_us: float = 300.0) -> dict[st
     return s
 
 
-def _result(dora_p50: float, raw_p50: float, rt_p50: float) -> dict[str, Any]:
-    variants = {"dora": _variant(dora_p50, 2740), "raw": _variant(raw_p50, 4660),
-                "runtime": _variant(rt_p50, 4000)}
+def _result(dora_p50: float, raw_p50: float, rt_p50: float,
+            routed_p50: float | None = None) -> dict[str, Any]:
+    """Peer-to-peer variants at ``raw_p50`` and ``rt_p50``; the routed ones 1.5× slower unless
+    ``routed_p50`` (the runtime's) is given."""
+    routed = 1.5 * rt_p50 if routed_p50 is None else routed_p50
+    variants = {"dora": _variant(dora_p50, 2740), "raw": _variant(1.5 * raw_p50, 4660),
+                "runtime": _variant(routed, 4000), "raw-p2p": _variant(raw_p50, 5000),
+                "runtime-p2p": _variant(rt_p50, 4500)}
     return {
         "date_utc": "2026-01-01T00:00:00Z", "machine": "x86_64", "cpus": 2,
         "load_avg_start": "0.10, 0.10, 0.10", "load_avg_end": "0.20, 0.10, 0.10",
@@ -90,10 +95,11 @@ def test_blocks_and_rotating_order() -> None:
     assert block_sizes(5, 300) == [5]
     with pytest.raises(ValueError):
         block_sizes(0)
-    orders = [block_order(r) for r in range(4)]
+    n = len(VARIANTS)
+    orders = [block_order(r) for r in range(n + 1)]
     assert orders[0] == list(VARIANTS)
-    assert orders[3] == orders[0]
-    assert [o[0] for o in orders[:3]] == list(VARIANTS)  # each variant goes first once a cycle
+    assert orders[n] == orders[0]
+    assert [o[0] for o in orders[:n]] == list(VARIANTS)  # each variant goes first once a cycle
 
 
 def test_summarize_rates_percentiles_and_cpu() -> None:
@@ -113,11 +119,16 @@ def test_summarize_rates_percentiles_and_cpu() -> None:
 
 def test_ratios_and_verdict() -> None:
     met = _result(dora_p50=342, raw_p50=191, rt_p50=200)["comparison"]
-    assert met["runtime_over_dora_p50"] == pytest.approx(200 / 342)
-    assert met["runtime_over_raw_p50"] == pytest.approx(200 / 191)
+    assert met["runtime_p2p_over_dora_p50"] == pytest.approx(200 / 342)
+    assert met["runtime_p2p_over_raw_p2p_p50"] == pytest.approx(200 / 191)
+    assert met["runtime_over_dora_p50"] == pytest.approx(300 / 342)  # routed: reported only
+    assert met["runtime_over_raw_p50"] == pytest.approx(300 / (1.5 * 191))
     assert met["target_runtime_over_dora_p50"] == TARGET_RATIO
     assert met["met"] is True
     assert "— **met**" in verdict_text(met)
+    # The verdict is the deployed (peer-to-peer) runtime's, whatever the routed one measures.
+    assert _result(dora_p50=342, raw_p50=191, rt_p50=200, routed_p50=100)["comparison"]["met"]
+    assert not _result(dora_p50=342, raw_p50=191, rt_p50=300, routed_p50=100)["comparison"]["met"]
     missed = _result(dora_p50=342, raw_p50=191, rt_p50=300)["comparison"]
     assert missed["met"] is False
     assert "NOT met" in verdict_text(missed)
@@ -128,9 +139,10 @@ def test_ratios_and_verdict() -> None:
 def test_report_has_every_variant_and_the_verdict(tmp_path: Path) -> None:
     res = _result(dora_p50=342, raw_p50=191, rt_p50=300)
     md = render_markdown(res)
-    for label in ("dora-rs", "raw zenoh-python via router", "project runtime via router"):
+    for label in ("dora-rs", "raw zenoh-python via router", "project runtime via router",
+                  "raw zenoh-python peer to peer", "project runtime peer to peer"):
         assert label in md
-    assert "**0.88×**" in md  # runtime / dora p50
+    assert "**0.88×**" in md  # runtime peer to peer / dora p50
     assert "NOT met" in md
     assert "2,740" in md and "342" in md  # the earlier figures beside this run's
     write_report(res, tmp_path)

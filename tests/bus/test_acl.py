@@ -440,6 +440,23 @@ def test_the_stack_checks_roles_and_client_mode(tmp_path: Path) -> None:
     stack = load_stack(DEFAULT_STACK, overrides={"stack.access_control": True}, env={})
     assert [p.name for p in stack.processes if not p.is_router] == [
         r for r in ROLE_NAMES if r not in ("viewer", "operator")]
+    # The stack file's processes are peers; under access control each is a client of the
+    # router, listening on nothing, in its config and in the environment psm up gives it.
+    from services.supervisor import Supervisor
+
+    peers = load_stack(DEFAULT_STACK, env={})
+    sup = Supervisor(stack)
+    sup.secrets_dir = tmp_path / "secrets"
+    for p in stack.processes:
+        if p.is_router:
+            continue
+        assert peers.configs[p.name].zenoh.mode == "peer", p.name
+        assert peers.configs[p.name].zenoh.listen == ["tcp/127.0.0.1:0"], p.name
+        assert stack.configs[p.name].zenoh.mode == "client", p.name
+        assert stack.configs[p.name].zenoh.listen == [], p.name
+        env = sup._env_of(p)
+        assert (env["PSM_ZENOH__MODE"], env["PSM_ZENOH__LISTEN"]) == ("client", "[]"), p.name
+        assert env["PSM_ZENOH__USER"] == p.name
     viewed = load_stack(DEFAULT_STACK, overrides={"stack.access_control": True}, env={}, view=True)
     assert sorted(p.name for p in viewed.processes if not p.is_router) == sorted(ROLE_NAMES[:-1])
     text = DEFAULT_STACK.read_text().replace('name = "camera"', 'name = "webcam"')

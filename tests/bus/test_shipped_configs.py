@@ -23,8 +23,10 @@ CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 )
 def test_the_stack_file_is_valid_for_every_service(cls: type) -> None:
     cfg = load_config(cls, CONFIGS / "stack.toml", env={})
-    assert cfg.zenoh.mode == "client"
+    # Peers that find each other through the router and link directly, on loopback only.
+    assert cfg.zenoh.mode == "peer"
     assert cfg.zenoh.connect == ["tcp/127.0.0.1:7447"]
+    assert cfg.zenoh.listen == ["tcp/127.0.0.1:0"]
     assert cfg.zenoh.multicast is False
 
 

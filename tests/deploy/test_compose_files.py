@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 from pathlib import Path
@@ -47,6 +48,11 @@ def test_every_process_is_a_service_with_its_needs_limits_and_command() -> None:
         else:
             assert svc["environment"]["PSM_ZENOH__USER"] == p.name in ROLE_NAMES
             assert svc["secrets"] == [f"psm_{p.name}"]
+            # ... as a client of the router, so that every message passes its rules (the stack
+            # file's processes are peers, which would link to each other past it).
+            assert STACK.configs[p.name].zenoh.mode == "peer"
+            assert svc["environment"]["PSM_ZENOH__MODE"] == "client"
+            assert svc["environment"]["PSM_ZENOH__LISTEN"] == "[]"
 
 
 def test_the_environment_of_every_container_is_valid_config(tmp_path: Path) -> None:
@@ -75,8 +81,11 @@ def test_the_environment_of_every_container_is_valid_config(tmp_path: Path) -> N
             for part in path:
                 assert part in node, f"{p.name}: {var} names no config field"
                 node = node[part]
-            assert (value in node) if isinstance(node, list) else (str(node).lower() == value.lower()), \
-                (p.name, var, node)
+            if isinstance(node, list):
+                ok = node == json.loads(value) if value.startswith("[") else value in node
+            else:
+                ok = str(node).lower() == value.lower()
+            assert ok, (p.name, var, node)
 
 
 def test_the_camera_host_shares_only_the_router_endpoint() -> None:
