@@ -268,7 +268,7 @@ def render_markdown(res: dict[str, Any]) -> str:
         "in the module docstring.",
         "",
         "Ping sends a small message, pong answers at once, ping sends the next only after the "
-        "answer. All three variants run in the same run, in alternating blocks of "
+        "answer. All five variants run in the same run, in alternating blocks of "
         f"{p['per_block']} round trips (order rotating) after a warm-up of {p['warmup']} each; "
         f"{p['round_trips']} measured round trips per variant. CPU = utime + stime from "
         "`/proc/<pid>/stat` of every process of the variant over the blocks.",
