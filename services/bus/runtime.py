@@ -282,9 +282,45 @@ def open_session(cfg: ZenohConfig, extra: Mapping[str, Any] | None = None) -> An
 
     init_zenoh_log()
     try:
-        return zenoh.open(zenoh_config(cfg, extra))
+        session = zenoh.open(zenoh_config(cfg, extra))
     except zenoh.ZError as exc:
         raise session_error(exc, cfg.mode, cfg.connect, cfg.listen, user=cfg.user) from None
+    if cfg.mode == "peer" and cfg.connect:
+        wait_for_peer_links(session)
+    return session
+
+
+#: :func:`wait_for_peer_links`: the set of linked peers must stay the same this long [s] ...
+PEER_LINKS_SETTLE_S = 0.25
+#: ... within this long after the session opened [s] (then the session is used as it is).
+PEER_LINKS_TIMEOUT_S = 3.0
+
+
+def wait_for_peer_links(
+    session: Any, settle_s: float = PEER_LINKS_SETTLE_S, timeout_s: float = PEER_LINKS_TIMEOUT_S
+) -> bool:
+    """Wait until a peer that connects to a router has linked to the other peers.
+
+    The router tells a new peer about the others (gossip scouting) and the peer opens a direct
+    link to each, within milliseconds on loopback; the router does not forward one peer's
+    samples to another, so what the new peer publishes before a link exists never reaches that
+    peer (a restarted planner's first commands would miss the recorder). Returns True once a
+    router is connected and the set of linked peers (``session.info.peers_zid()``) has not
+    changed for ``settle_s``; False after ``timeout_s`` (the session is used as it is)."""
+    info = session.info
+    deadline = time.monotonic() + timeout_s
+    linked: frozenset[str] | None = None
+    since = time.monotonic()
+    while True:
+        now = time.monotonic()
+        peers = frozenset(str(z) for z in info.peers_zid())
+        if peers != linked:
+            linked, since = peers, now
+        elif now - since >= settle_s and any(True for _ in info.routers_zid()):
+            return True
+        if now >= deadline:
+            return False
+        time.sleep(0.01)
 
 
 def _qos_kwargs(topic: Topic) -> dict[str, Any]:

@@ -429,3 +429,35 @@ def test_latest_delivery_takes_only_the_newest_sample_on_the_callers_thread(rout
     finally:
         b.close()
         a.close()
+
+
+def test_a_new_peer_reaches_every_peer_with_its_first_sample(router) -> None:  # type: ignore[no-untyped-def]
+    """The stack's processes are peers linked directly; the router forwards nothing between
+    them. A peer whose session :func:`open_session` returns has linked to every peer already on
+    the router (``wait_for_peer_links``), so the first sample it publishes reaches all of them:
+    a restarted planner's first command is recorded."""
+    from services.bus.config import ServiceConfig, load_config
+    from services.bus.runtime import open_session
+
+    def peer_cfg() -> ServiceConfig:
+        return load_config(ServiceConfig, env={}, overrides={
+            "zenoh.mode": "peer", "zenoh.connect": [router], "zenoh.listen": ["tcp/127.0.0.1:0"],
+            "zenoh.multicast": False})
+
+    listeners = [open_session(peer_cfg().zenoh) for _ in range(3)]
+    got: list[list[int]] = [[] for _ in listeners]
+    subs = [s.declare_subscriber("first/sample", lambda smp, g=g: g.append(int(smp.payload.to_string())))
+            for s, g in zip(listeners, got, strict=True)]
+    time.sleep(0.5)  # the subscriptions are declared to every peer
+    try:
+        for n in range(5):
+            newcomer = open_session(peer_cfg().zenoh)
+            assert len(list(newcomer.info.peers_zid())) >= len(listeners)
+            newcomer.put("first/sample", str(n))
+            assert wait_for(lambda n=n: all(n in g for g in got), 3.0), (n, got)
+            newcomer.close()
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        for s in listeners:
+            s.close()
