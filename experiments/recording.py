@@ -274,7 +274,7 @@ def _time_to_go(rec: Recording, rows: slice, model: Any, goal: NDArray[np.float6
                 elif stops_set:
                     ctrl.clear_stops()
                     stops_set = False
-        ctrl.step(X[i], V[i] - gvel[i], float(dts[i]))
+        ctrl.step(X[i], V[i], float(dts[i]), gvel[i])
         out[i] = ctrl.time_to_go
     return out
 

@@ -118,7 +118,10 @@ class PSMController:
 
     ``a = ctrl.step(x, v, dt)`` takes the measured position ``x (D,)`` [unit] and velocity
     ``v (D,)`` [unit/s] and returns the commanded acceleration ``(D,)`` [unit/s²] for the next ``dt``
-    [s]. ``ctrl.set_goal(g)`` moves the goal at any time (velocity stays continuous);
+    [s]; for a moving goal, ``ctrl.step(x, v, dt, goal_velocity)`` runs the phase-space law on the
+    velocity relative to the goal's (the via-points move with it) and the collision stops, fixed in
+    the world, on the measured velocity. ``ctrl.set_goal(g)`` moves the goal at any time (velocity
+    stays continuous);
     ``ctrl.time_to_go`` is each dimension's ``t_e`` [s]; ``ctrl.done`` is true once every dimension
     holds the goal within the model's tolerances.
     """
@@ -274,11 +277,24 @@ class PSMController:
         self._t_big_prev = 0.0
 
     # ------------------------------------------------------------------ the control law
-    def step(self, x: ArrayLike, v: ArrayLike, dt: float) -> NDArray[np.float64]:
-        """Acceleration command ``(D,)`` [unit/s²] for the measured state ``x, v (D,)`` over ``dt`` [s]."""
+    def step(
+        self, x: ArrayLike, v: ArrayLike, dt: float, goal_velocity: ArrayLike | None = None
+    ) -> NDArray[np.float64]:
+        """Acceleration command ``(D,)`` [unit/s²] for the measured state ``x, v (D,)`` over ``dt`` [s].
+
+        ``goal_velocity (D,)`` [unit/s] (None: a static goal): the velocity of a moving goal. The
+        via-points are relative to the goal, so the law runs on ``v − goal_velocity``; a collision
+        stop is a position in the world and brakes ``v`` itself to rest there."""
         D = self._D
         xs = x.tolist() if isinstance(x, np.ndarray) else list(x)
-        vs = v.tolist() if isinstance(v, np.ndarray) else list(v)
+        v_world = v.tolist() if isinstance(v, np.ndarray) else list(v)
+        if goal_velocity is None:
+            vs = v_world
+        else:
+            gv = goal_velocity.tolist() if isinstance(goal_velocity, np.ndarray) else list(goal_velocity)
+            if len(gv) != D:
+                raise ShapeError(f"goal_velocity must have shape ({D},), got {len(gv)}")
+            vs = [v_world[d] - gv[d] for d in range(len(v_world))]
         if len(xs) != D or len(vs) != D:
             raise ShapeError(f"state must have shape ({D},), got x {len(xs)}, v {len(vs)}")
         if not dt > 0.0:
@@ -291,7 +307,7 @@ class PSMController:
         t_big = 0.0  # the largest finite t_e of the dimensions that take part in the synchronisation
         for d in range(D):
             x_d, v_d = xs[d], vs[d]
-            a, te, mode = self._dimension(d, x_d, v_d, dt)
+            a, te, mode = self._dimension(d, x_d, v_d, v_world[d], dt)
             acc[d] = a
             t_e[d] = te
             modes[d] = mode
@@ -363,8 +379,9 @@ class PSMController:
                     acc[d] = -a_max[d]
         return np.array(acc)
 
-    def _dimension(self, d: int, x: float, v: float, dt: float) -> tuple[float, float, str]:
-        """Acceleration, time to completion and mode of dimension ``d``."""
+    def _dimension(self, d: int, x: float, v: float, v_world: float, dt: float) -> tuple[float, float, str]:
+        """Acceleration, time to completion and mode of dimension ``d`` in the state ``x`` [unit],
+        ``v`` relative to the goal and ``v_world`` measured [unit/s]."""
         chain = self._chains[d]
         g = self._goal[d]
         n = self._n[d]
@@ -506,14 +523,17 @@ class PSMController:
         stop = self._stops[d]
         if stop is not None:
             gap = stop - x
+            # The stop is fixed in the world: it brakes the measured velocity (that relative to a
+            # moving goal would let the axis drift through the stop at the goal's speed).
+            vw = v_world
             if 0.0 < gap * direction <= abs(delta):
                 # Eq. 15: the obstacle stop lies ahead of the state, before the via-point.
-                if v * gap > 0.0:
-                    return -v * v / (2.0 * gap), math.inf, MODE_STOP
+                if vw * gap > 0.0:
+                    return -vw * vw / (2.0 * gap), math.inf, MODE_STOP
                 return 0.0, math.inf, MODE_STOP
-            if gap * v <= 0.0 and abs(gap) <= abs(v) * dt:
+            if gap * vw <= 0.0 and abs(gap) <= abs(vw) * dt:
                 # On (or a tick past) the stop line and still moving: brake to rest.
-                return -math.copysign(min(m, abs(v) / dt), v), math.inf, MODE_STOP
+                return -math.copysign(min(m, abs(vw) / dt), vw), math.inf, MODE_STOP
         if wrong_way:
             # Eq. 10: moving away from x_n; brake at constant m until the velocity is zero.
             return m * direction, te, MODE_WRONG_WAY

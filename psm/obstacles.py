@@ -15,7 +15,9 @@ Pure numpy/scipy. Conventions (the bus's ``Obstacle`` message, without its types
 * :func:`segment_check` is the collision condition of the stop: does the straight segment from
   the current end-effector position to the goal pass through an inflated obstacle? If so it
   returns the first obstacle hit along the segment and the per-axis stop positions for
-  :meth:`psm.controller.PSMController.set_stops`.
+  :meth:`psm.controller.PSMController.set_stops`;
+* :func:`stopping_check` is its complement for a path that bends away from that segment: the same
+  test on the end effector's stopping path (along its velocity, over :func:`stopping_distance`).
 
 Semantics of the test (``docs/obstacles.md`` has the derivations):
 
@@ -636,6 +638,49 @@ def segment_check(
             ttc = dist / speed
     return SegmentHit(True, owner, compiled.ids[owner], frac, np.array(entry), np.array(normal),
                       np.array(stop), False, dist, ttc)
+
+
+def stopping_distance(speed_mps: float, decel_mps2: float, dt_s: float) -> float:
+    """How far a point moving at ``speed_mps`` [m/s] travels before it is at rest [m]: one control
+    period ``dt_s`` [s] at that speed (the stop acts from the next tick) plus braking at
+    ``decel_mps2`` [m/s²] (> 0), ``v²/(2a)``."""
+    return speed_mps * dt_s + speed_mps * speed_mps / (2.0 * decel_mps2)
+
+
+def stopping_check(
+    start: ArrayLike,
+    velocity: ArrayLike,
+    compiled: CompiledObstacles,
+    decel_mps2: float,
+    dt_s: float,
+    horizon_s: float = 0.0,
+    sweep_step_m: float = SWEEP_STEP_M,
+) -> SegmentHit:
+    """The complement of :func:`segment_check` for a path that is not the straight segment to the
+    goal: does the point's stopping path, the segment from ``start`` along ``velocity`` over
+    :func:`stopping_distance`, enter an inflated obstacle? Same result and stop rule as
+    :func:`segment_check` (the segment's end is where the point would come to rest).
+
+    Args:
+        start: ``(3,) [m]`` current end-effector position.
+        velocity: ``(3,) [m/s]`` its velocity (at rest: never a hit).
+        compiled: the obstacles (:func:`compile_obstacles`).
+        decel_mps2: ``[m/s²]`` the deceleration the stop brakes with (> 0).
+        dt_s: ``[s]`` the control period.
+        horizon_s, sweep_step_m: moving obstacles, as in :func:`segment_check`.
+    """
+    p = np.asarray(start, dtype=float)
+    v = np.asarray(velocity, dtype=float)
+    speed = math.sqrt(float(v @ v))
+    if speed == 0.0 or len(compiled) == 0:
+        return _NO_HIT
+    reach = stopping_distance(speed, decel_mps2, dt_s)
+    el = compiled.elements(horizon_s, sweep_step_m)
+    # Broad phase: every element's bounding sphere farther than the stopping path is a miss.
+    off = el.centre - p
+    if not bool(np.any(np.einsum("ij,ij->i", off, off) < (el.bound + reach) ** 2)):
+        return _NO_HIT
+    return segment_check(p, p + v * (reach / speed), compiled, horizon_s, v, sweep_step_m)
 
 
 def _rotate(R: list[list[float]], n: list[float]) -> list[float]:

@@ -99,7 +99,19 @@ class ObstacleMonitorSection(Section):
         gt=0.0,
         le=50.0,
         description="deceleration the planner brakes with on a protective stop (its task hold_max_accel) "
-        "[m/s^2]: the stopping distance is added to clearance_stop_m",
+        "[m/s^2]: the stopping distance is added to clearance_stop_m, and the stopping check looks that far",
+    )
+    stopping_check: bool = Field(
+        True,
+        description="while the segment to the goal is clear, also test the end effector's stopping path "
+        "(one tick at its speed plus braking at brake_decel_mps2, along its velocity)",
+    )
+    stopping_release_m: float = Field(
+        0.01,
+        gt=0.0,
+        le=0.5,
+        description="a stop from the stopping check holds until the end effector is this far from the "
+        "surface it headed into, or beside the obstacle [m]",
     )
     scene_rate_hz: float = Field(
         10.0, gt=0.0, le=100.0, description="ObstacleSet/SceneUpdate rate while one moves (stack clock) [Hz]"

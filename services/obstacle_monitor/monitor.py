@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from psm.obstacles import Obstacle, compile_obstacles, segment_check
+from psm.obstacles import Obstacle, SegmentHit, compile_obstacles, segment_check, stopping_check
 from services.obstacle_monitor.config import ObstacleMonitorSection
 
 __all__ = ["ObstacleMonitor", "Prediction"]
@@ -94,6 +94,7 @@ class ObstacleMonitor:
         self._last_clear_tick = -(10**12)
         self._clear: Any = None
         self._stopped = False
+        self._held: SegmentHit | None = None  # the stopping check's hit, held until released
         self.predictions = 0
         self.collisions = 0
         self.protective_stops = 0
@@ -220,18 +221,28 @@ class ObstacleMonitor:
         compiled = self._compiled
         if self._moving:
             compiled = compiled.at((stamp_ns - self._epoch_ns) * 1e-9)
-        if self._goal is not None and len(compiled):
+        if len(compiled):
             horizon = sec.horizon_s if self._moving else 0.0
-            hit = segment_check(x, self._goal, compiled, horizon_s=horizon, velocity=v)
-            if hit.collision:
+            hit: SegmentHit | None = None
+            if self._goal is not None:
+                hit = segment_check(x, self._goal, compiled, horizon_s=horizon, velocity=v)
+            if hit is not None and hit.collision:
+                self._held = None
+                if hit.inside:
+                    out.detail = f"end effector inside the safety volume of {hit.obstacle_id}"
+            elif sec.stopping_check:
+                hit = self._stopping(x, v, compiled, horizon, dt_s)
+                if hit is not None:
+                    out.detail = f"stopping path enters the safety volume of {hit.obstacle_id}"
+            if hit is not None and hit.collision:
                 self.collisions += 1
                 out.collision, out.obstacle_id, out.inside = True, hit.obstacle_id, bool(hit.inside)
                 out.entry_point = np.asarray(hit.entry_point, dtype=float)
                 out.entry_distance_m = float(hit.distance_m)
                 out.time_to_collision_s = float(hit.time_to_collision_s)
                 out.stop_position = np.asarray(hit.stop_position, dtype=float)
-                if hit.inside:
-                    out.detail = f"end effector inside the safety volume of {hit.obstacle_id}"
+        else:
+            self._held = None
         clr = self.clearance
         if clr is not None and self._obstacles:
             if self._clearance_dirty or tick - self._last_clear_tick >= sec.clearance_every:
@@ -268,6 +279,29 @@ class ObstacleMonitor:
             )
         self.predictions += 1
         return out
+
+    def _stopping(
+        self, x: NDArray[np.float64], v: NDArray[np.float64], compiled: Any, horizon: float, dt_s: float
+    ) -> SegmentHit | None:
+        """The stopping check (:func:`psm.obstacles.stopping_check`) while the segment to the goal
+        is clear: the end effector's path bends away from that segment (a re-targeted goal, the
+        demonstration's shape) and may cut an obstacle's edge the segment clears. A hit is held
+        while the end effector stays within ``stopping_release_m`` of the surface it headed into
+        (a probe that far along the surface's inward normal still enters the same obstacle), so
+        an axis held at a face is not released and caught again at every tick."""
+        sec = self.section
+        held = self._held
+        if held is not None:
+            probe = segment_check(x, x - held.normal * sec.stopping_release_m, compiled, horizon_s=horizon)
+            if probe.collision and probe.obstacle_id == held.obstacle_id:
+                return held
+            self._held = None
+        hit = stopping_check(x, v, compiled, sec.brake_decel_mps2, dt_s, horizon_s=horizon)
+        if not hit.collision:
+            return None
+        if not hit.inside:
+            self._held = hit
+        return hit
 
     def summary(self) -> dict[str, Any]:
         """Counters and the clearance check's cost percentiles [µs]."""

@@ -589,11 +589,12 @@ class TaskRunner:
                 self._event_goal = goal.copy()
                 self._event("GOAL_CHANGED", f"{spec.goal} at {np.round(goal, 3).tolist()}")
         self._goal_velocity = goal_vel
-        # The via-points are relative to the goal, so the phase-space state is too: the velocity
-        # relative to a moving goal's (zero for a static goal). With the absolute velocity a
-        # via-point at rest, carried along by a goal moving steadily, is never reached at rest:
-        # the dimension trails it and the motion stalls there.
-        acc = ctrl.step(x, v - goal_vel, dt)
+        # The via-points are relative to the goal, so the phase-space state is too: the controller
+        # runs its law on the velocity relative to a moving goal's (zero for a static goal). With
+        # the absolute velocity a via-point at rest, carried along by a goal moving steadily, is
+        # never reached at rest: the dimension trails it and the motion stalls there. Its
+        # collision stops, fixed in the world, brake the measured velocity.
+        acc = ctrl.step(x, v, dt, goal_vel)
         seg = tuple(ctrl.segment.tolist())
         if seg != self._segments:
             changed = [

@@ -185,6 +185,28 @@ def test_collision_stop_and_resume(model: PhaseSpaceModel) -> None:
     np.testing.assert_allclose(x, model.goal, atol=model.parameters.position_tolerance)
 
 
+def test_a_collision_stop_holds_in_the_world_while_the_goal_moves(model: PhaseSpaceModel) -> None:
+    """The law runs on the velocity relative to a moving goal, the stop on the measured one: an
+    axis braked at a stop comes to rest there, although relative to the goal it is moving."""
+    goal = model.goal.copy()
+    goal_velocity = np.array([0.05, 0.0, 0.0])  # the goal moves on, beyond the stop
+    ctrl = model.controller(goal)
+    x, v = model.start.copy(), np.zeros(3)
+    x_ob = model.start[0] + 0.15
+    ctrl.request_stop(0, x_ob)
+    max_x = -np.inf
+    for _ in range(2500):
+        goal = goal + goal_velocity * DT
+        ctrl.set_goal(goal)
+        a = ctrl.step(x, v, DT, goal_velocity)
+        x = x + v * DT + 0.5 * a * DT * DT
+        v = v + a * DT
+        max_x = max(max_x, x[0])
+    assert ctrl.modes[0] == MODE_STOP
+    assert max_x <= x_ob + 1e-6
+    assert abs(v[0]) < 1e-3  # at rest in the world (relative to the goal: -0.05 m/s)
+
+
 def test_time_to_go_counts_down(model: PhaseSpaceModel) -> None:
     ctrl = model.controller()
     x, v = model.start.copy(), np.zeros(3)

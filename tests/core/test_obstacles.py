@@ -24,6 +24,8 @@ from psm.obstacles import (
     ObstacleError,
     compile_obstacles,
     segment_check,
+    stopping_check,
+    stopping_distance,
     validate_obstacle,
 )
 
@@ -116,6 +118,25 @@ def test_box_inflation_has_square_corners() -> None:
     corner = np.full(3, 0.1 + 0.05 * 0.999)
     hit = segment_check(corner, corner, c)
     assert hit.collision and hit.inside
+
+
+def test_the_stopping_path_runs_along_the_velocity_over_the_stopping_distance() -> None:
+    # Face at y = 0.5 - 0.1 - 0.05 = 0.35; the start 5 cm before it.
+    c = compile_obstacles([box(pos=(0.0, 0.5, 0.2), size=(0.4, 0.2, 0.4))], margin_m=0.05)
+    assert stopping_distance(0.6, 3.0, 0.002) == pytest.approx(0.6 * 0.002 + 0.36 / 6.0)
+    start = [0.0, 0.30, 0.1]
+    slow = stopping_check(start, [0.0, 0.2, 0.0], c, decel_mps2=3.0, dt_s=0.002)  # stops 7 mm on
+    assert not slow.collision
+    fast = stopping_check(start, [0.0, 0.6, 0.0], c, decel_mps2=3.0, dt_s=0.002)  # 61 mm on
+    assert fast.collision and not fast.inside and fast.obstacle_id == "b"
+    assert fast.stop_position[1] == pytest.approx(0.35) and np.isnan(fast.stop_position[[0, 2]]).all()
+    assert fast.distance_m == pytest.approx(0.05)
+    assert not stopping_check(start, [0.0, -0.6, 0.0], c, decel_mps2=3.0, dt_s=0.002).collision  # away
+    assert not stopping_check(start, [0.0, 0.0, 0.0], c, decel_mps2=3.0, dt_s=0.002).collision  # at rest
+    # Sliding along the face is grazing; a velocity into it from just outside is a hit.
+    on_face = [0.0, 0.35, 0.1]
+    assert not stopping_check(on_face, [0.3, 0.0, 0.0], c, decel_mps2=3.0, dt_s=0.002).collision
+    assert stopping_check(on_face, [0.3, 0.01, 0.0], c, decel_mps2=3.0, dt_s=0.002).collision
 
 
 # ---------------------------------------------------------------------------- axis-aligned box

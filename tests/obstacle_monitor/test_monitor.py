@@ -144,6 +144,33 @@ def test_the_wall_stops_y_at_its_inflated_face() -> None:
     assert not pred.protective_stop and pred.obstacle_count == 1
 
 
+def test_the_stopping_path_holds_an_axis_at_a_face_the_segment_to_the_goal_clears() -> None:
+    """Over the wall's top (inflated to z = 0.41) with the goal beyond it and above: the segment
+    to the goal is clear, but the end effector sinks towards the top. The stopping check stops z
+    at the top face and holds the stop while the end effector stays within stopping_release_m
+    (1 cm) above it over the wall; 1.5 cm above, or beside the wall, it is released."""
+    m = _monitor(clearance=False, obstacles_file=str(WALL_FILE), margin_m=0.03, tool_radius_m=0.15)
+    m.monitor.set_goal([0.5, 0.75, 0.45])
+    top = 0.115 + 0.115 + 0.18
+    pred = m.predict(_state(1, (0.5, 0.40, top + 0.005), (0.0, 0.1, -0.2)))
+    assert pred is not None and pred.collision and pred.obstacle_id == "wall" and not pred.inside
+    stop = list(pred.stop_position)
+    assert math.isnan(stop[0]) and math.isnan(stop[1]) and stop[2] == pytest.approx(top)
+    # Sliding along the top (grazing): the stop is held.
+    pred = m.predict(_state(2, (0.5, 0.45, top + 0.001), (0.0, 0.1, 0.0)))
+    assert pred is not None and pred.collision and list(pred.stop_position)[2] == pytest.approx(top)
+    pred = m.predict(_state(3, (0.5, 0.46, top + 0.015), (0.0, 0.1, 0.0)))
+    assert pred is not None and not pred.collision  # released
+    # Caught again, then released beside the wall (out of its y extent).
+    assert m.predict(_state(4, (0.5, 0.50, top + 0.004), (0.0, 0.1, -0.3))).collision
+    assert m.predict(_state(5, (0.5, 0.60, top + 0.001), (0.0, 0.1, 0.0))).collision
+    assert not m.predict(_state(6, (0.5, 0.67, top + 0.001), (0.0, 0.1, 0.0))).collision
+    # Off: the segment to the goal alone.
+    off = _monitor(clearance=False, obstacles_file=str(WALL_FILE), stopping_check=False)
+    off.monitor.set_goal([0.5, 0.75, 0.45])
+    assert not off.predict(_state(1, (0.5, 0.40, top + 0.005), (0.0, 0.1, -0.2))).collision
+
+
 def test_no_goal_no_segment_test() -> None:
     m = _monitor(clearance=False, obstacles_file=str(WALL_FILE))
     pred = m.predict(_state(1, (0.55, 0.26, 0.16)))
