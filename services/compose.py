@@ -61,6 +61,9 @@ COMPOSE_DIR = ROOT / "docker"
 APP_DIR = "/app"
 IMAGE = "psm-dataflow:${PSM_IMAGE_TAG:-local}"
 ROUTER_PORT = 7447
+#: zenoh's log filter inside every container, passed from the host's environment
+#: (``RUST_LOG=zenoh_transport=debug docker compose up``; unset: errors only).
+RUST_LOG = "RUST_LOG"
 #: The container user (the image's ``psm`` user unless PSM_UID/PSM_GID say otherwise).
 USER = "${PSM_UID:-10001}:${PSM_GID:-10001}"
 #: Every service rewrites this file at each status period while it runs and is connected to
@@ -153,6 +156,7 @@ class _Builder:
             env.update(routed_client_env())
             env[env_var_name("zenoh.user")] = p.name
             env[env_var_name("zenoh.password_file")] = f"/run/secrets/psm_{p.name}"
+        env[RUST_LOG] = "${RUST_LOG:-}"  # zenoh's own log filter, from the host (empty: errors)
         return env
 
     def healthcheck(self) -> dict[str, Any]:

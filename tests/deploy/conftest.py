@@ -19,7 +19,7 @@ import shutil
 import socket
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -189,16 +189,21 @@ class Project:
             time.sleep(1.0)
         pytest.fail(f"{service} still running after {timeout_s:.0f} s:\n{self.logs(service)[-4000:]}")
 
-    def wait_log(self, service: str, text: str, timeout_s: float, *, seen: int = 0) -> float:
+    def wait_log(
+        self, service: str, text: str, timeout_s: float, *, seen: int = 0,
+        context: Sequence[tuple[Project, str]] = (),
+    ) -> float:
         """Wait until ``text`` is in the logs of ``service`` more than ``seen`` times; returns
-        the time it took [s]."""
+        the time it took [s]. On a timeout the failure shows the tail of that log and of every
+        ``(project, service)`` in ``context``."""
         t0 = time.monotonic()
         while time.monotonic() - t0 < timeout_s:
             if self.logs(service).count(text) > seen:
                 return time.monotonic() - t0
             time.sleep(0.25)
-        tail = self.logs(service)[-4000:]
-        pytest.fail(f"{text!r} not in the {service} log within {timeout_s:.0f} s:\n{tail}")
+        tails = [f"--- {self.name}/{service}:\n{self.logs(service)[-4000:]}"]
+        tails += [f"--- {p.name}/{s}:\n{p.logs(s)[-6000:]}" for p, s in context]
+        pytest.fail(f"{text!r} not in the {service} log within {timeout_s:.0f} s:\n" + "\n".join(tails))
 
 
 @pytest.fixture

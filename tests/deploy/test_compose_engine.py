@@ -32,6 +32,9 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(900
 STACK = load_stack(ROOT / "configs" / "stack.toml")
 SERVICES = [p.name for p in STACK.processes]
 CAMERA_SIDE = ["camera", "goal_tracker"]
+#: zenoh's log filter on the camera host of the two-host test: its links and transports opened,
+#: closed and retried (the router's own log says when it closes a transport).
+ZENOH_LINK_LOG = "error,zenoh_transport=debug,zenoh::net::runtime=debug"
 MEASUREMENTS = ROOT / "out" / "deploy" / "compose_measurements.json"
 
 
@@ -184,6 +187,7 @@ def test_a_camera_host_cut_off_holds_the_task_and_it_resumes(project_factory: An
     })
     camera_host = project_factory("psmcam", ["compose.camera-host.yaml"], {
         "PSM_ROUTER_HOST": "host.docker.internal", "PSM_ROUTER_PORT": str(port),
+        "RUST_LOG": ZENOH_LINK_LOG,  # how the links went, for a failure's log tails
     })
     # The planner starts last, once the camera host is up, so the task reaches the person's
     # step with the goal flowing across the hosts whatever the start-up times.
@@ -223,7 +227,10 @@ def test_a_camera_host_cut_off_holds_the_task_and_it_resumes(project_factory: An
     for c in containers:
         subprocess.run(["docker", "network", "connect", network, c], check=True, timeout=60)
     back_at, back_wall = time.monotonic(), time.time()
-    resumed_s = arm_host.wait_log("planner", "resumed: goal person", 60, seen=resumed_before)
+    resumed_s = arm_host.wait_log(
+        "planner", "resumed: goal person", 60, seen=resumed_before,
+        context=[(arm_host, "router"), *((camera_host, s) for s in CAMERA_SIDE)],
+    )
     resumed_s += back_at - reconnect_at  # from the first connect
     code = arm_host.wait_exit("planner", 240)
     log = arm_host.logs("planner")
