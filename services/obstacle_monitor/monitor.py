@@ -288,7 +288,8 @@ class ObstacleMonitor:
         demonstration's shape) and may cut an obstacle's edge the segment clears. A hit is held
         while the end effector stays within ``stopping_release_m`` of the surface it headed into
         (a probe that far along the surface's inward normal still enters the same obstacle), so
-        an axis held at a face is not released and caught again at every tick."""
+        an axis held at a face is not released and caught again at every tick. With moving
+        obstacles nothing is held: the stop is computed afresh at every tick."""
         sec = self.section
         held = self._held
         if held is not None:
@@ -299,7 +300,7 @@ class ObstacleMonitor:
         hit = stopping_check(x, v, compiled, sec.brake_decel_mps2, dt_s, horizon_s=horizon)
         if not hit.collision:
             return None
-        if not hit.inside:
+        if not hit.inside and not self._moving:
             self._held = hit
         return hit
 
