@@ -207,6 +207,13 @@ class ArmService(ServiceApp):
         if section.model != "off":
             self.model = arm_model_scene(self.robot, 0, section.model, section.model_max_bytes)
 
+    def zenoh_extra(self) -> dict[str, Any]:
+        """The arm's state goes droppable to the clock sampler (a peer linked to the arm):
+        :func:`~services.bus.messages.clock_sampler_qos`."""
+        from services.bus.messages import Keys, clock_sampler_qos
+
+        return {"qos/network": clock_sampler_qos(Keys(self.config.prefix))}
+
     def setup(self, svc: Service) -> None:
         """Declare the publishers, the command subscriber and the liveliness watches."""
         import zenoh

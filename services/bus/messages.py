@@ -29,6 +29,7 @@ Example::
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 from collections.abc import Iterator
@@ -94,6 +95,8 @@ __all__ = [
     "TaskEvent",
     "Topic",
     "Vec3",
+    "clock_sampler_qos",
+    "clock_sampler_zid",
     "decode",
     "encode",
     "encoding_for",
@@ -203,6 +206,30 @@ QOS_CONTROL = QoS(StreamClass.CONTROL, "REAL_TIME", True, "BLOCK", 0, 500.0)
 QOS_CAMERA = QoS(StreamClass.DROPPABLE, "DATA_LOW", False, "DROP", 0, 30.0)
 QOS_LATCHED = QoS(StreamClass.LATCHED, "DATA_HIGH", False, "BLOCK", 1, 0.0)
 QOS_DATA = QoS(StreamClass.DATA, "DATA", False, "BLOCK", 0, 0.0)
+
+
+def clock_sampler_zid(prefix: str) -> str:
+    """The zenoh id of the session that samples ``<prefix>/arm/state`` as its clock (the
+    synthetic camera on the arm's clock): 32 hex digits fixed by the prefix, so that the
+    sessions sending it the state can name it in :func:`clock_sampler_qos`. One such session
+    per prefix."""
+    return "1" + hashlib.sha256(f"psm clock sampler {prefix}".encode()).hexdigest()[:31]
+
+
+def clock_sampler_qos(keys: Keys) -> list[dict[str, Any]]:
+    """zenoh ``qos/network`` rules of the sessions that send the arm's state (the arm, the
+    router): to the clock sampler (:func:`clock_sampler_zid`) it goes droppable. The state is a
+    control stream, blocking under congestion; a sampler that stalls or is cut off (a camera on
+    another host) would otherwise block its sender for zenoh's ``wait_before_close`` (5 s), and
+    with it the control loop, before zenoh closes the link. The sampler only ever uses the
+    newest state (``"latest"`` delivery), so a dropped one costs it nothing."""
+    return [{
+        "zids": [clock_sampler_zid(keys.prefix)],
+        "key_exprs": [keys.arm_state.key],
+        "messages": ["put"],
+        "flows": ["egress"],
+        "overwrite": {"congestion_control": "drop"},
+    }]
 
 
 @dataclass(frozen=True)

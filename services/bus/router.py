@@ -109,12 +109,14 @@ class RouterConfig(ServiceConfig):
         )
 
     def session_extra(self) -> dict[str, Any]:
-        """The router's zenoh settings beyond :class:`ZenohConfig`: the users dictionary and
-        the access-control configuration of the roles (zenoh config path -> JSON value)."""
+        """The router's zenoh settings beyond :class:`ZenohConfig`: the clock sampler's QoS, the
+        users dictionary and the access-control configuration of the roles (zenoh config path ->
+        JSON value)."""
         from services.bus.acl import acl_config
-        from services.bus.messages import Keys
+        from services.bus.messages import Keys, clock_sampler_qos
 
-        extra: dict[str, Any] = {}
+        # The arm's state goes droppable to the clock sampler when routed to it (clients).
+        extra: dict[str, Any] = {"qos/network": clock_sampler_qos(Keys(self.prefix))}
         if self.router.users_file:
             extra["transport/auth/usrpwd/dictionary_file"] = str(
                 Path(self.router.users_file).resolve()

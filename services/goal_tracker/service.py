@@ -482,6 +482,15 @@ class SyntheticCameraService(ServiceApp):
         self.source: Any = None
         limit_opencv_threads(1)
 
+    def zenoh_extra(self) -> dict[str, Any]:
+        """On the arm's clock the session has the clock sampler's fixed id, to which the arm's
+        state is sent droppable (:func:`~services.bus.messages.clock_sampler_qos`)."""
+        if self.sec.synthetic.clock != "arm":
+            return {}
+        from services.bus.messages import clock_sampler_zid
+
+        return {"id": clock_sampler_zid(self.config.prefix)}
+
     def open_source(self, svc: Service) -> Any:
         """The frame source of this camera."""
         sec = self.sec
