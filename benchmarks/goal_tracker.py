@@ -58,6 +58,7 @@ from services.goal_tracker.config import (
     build_tracker,
 )
 from services.goal_tracker.service import goal_message
+from services.goal_tracker.sources import decode_image
 
 TARGET_FPS = 30.0
 TARGET_P50_MS = 35.0
@@ -113,6 +114,7 @@ def steadiness_run(still: bool, n: int = STEADY_FRAMES) -> dict[str, Any]:
     from services.goal_tracker.config import build_geometry
 
     cam, geo, tracker = build_synthetic_camera(sec), build_geometry(sec), build_tracker(sec)
+    grey = sec.detector.kind == "haar"  # decoded as the service decodes a topic's images
     fps = sec.synthetic.fps
     t = np.arange(n) / fps
     est = np.full((n, 3), np.nan)
@@ -124,7 +126,7 @@ def steadiness_run(still: bool, n: int = STEADY_FRAMES) -> dict[str, Any]:
         assert ok
         truth[k] = geo.camera_to_base.apply(cam.truth(tk)[0].position_cam + offset)
         c0 = time.process_time()
-        out = tracker.process(cv2.imdecode(buf, cv2.IMREAD_COLOR), round(tk * 1e9))
+        out = tracker.process(decode_image(buf.tobytes(), grey), round(tk * 1e9))
         goal_message(out, k, "person", "base").SerializeToString()
         cpu[k] = time.process_time() - c0
         if out.valid:

@@ -40,7 +40,7 @@ class FaceDetector(Protocol):
         max_size: int | None = None,
         fine: bool = False,
     ) -> list[Detection]:
-        """Faces in ``image`` (H×W×3 BGR uint8), boxes in that image's pixels.
+        """Faces in ``image`` (H×W×3 BGR or H×W grey uint8), boxes in that image's pixels.
 
         Args:
             min_size, max_size: face width range in pixels (``max_size`` None: unbounded).
@@ -179,7 +179,11 @@ class PipelineParams(Section):
     min_face_px: int = Field(
         40, ge=8, description="smallest face width searched by a full detection [px]"
     )
-    roi_margin: float = Field(1.8, ge=1.2, description="ROI side = predicted face size x this")
+    roi_margin: float = Field(
+        1.5, ge=1.2,
+        description="ROI side = predicted face size x this (below ~1.4 the side cuts off the "
+        "largest faces of roi_size_range and biases the boxes)",
+    )
     roi_max_face_px: int = Field(
         128, ge=48,
         description="faces wider than this are searched in an ROI at 1/2, 1/4... resolution [px]",

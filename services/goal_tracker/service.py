@@ -297,7 +297,11 @@ class GoalTrackerService(ServiceApp):
         if source is None and cam.source == "synthetic":
             source = _synthetic_on_bus(svc, sec)
         elif source is None:
-            queue_source = QueueSource(f"topic {keys.camera_image(cam.camera_id).key}", cam.topic_max_pending)
+            # Haar looks at grey levels only: the JPEG's luma plane is decoded without colour.
+            queue_source = QueueSource(
+                f"topic {keys.camera_image(cam.camera_id).key}", cam.topic_max_pending,
+                grayscale=sec.detector.kind == "haar",
+            )
 
             last = [-1, 0]  # the last image's stamp [ns], images stamped before it in a row
 

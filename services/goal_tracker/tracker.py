@@ -122,7 +122,7 @@ class GoalTracker:
         return Detection(float(x), float(y), float(w), float(h))
 
     def process(self, frame: Image, stamp_ns: int) -> TrackOutput:
-        """Run one frame (H×W×3 BGR uint8) with stamp ``stamp_ns`` (ns) through the tracker."""
+        """Run one frame (H×W×3 BGR or H×W grey uint8) with stamp ``stamp_ns`` (ns) through the tracker."""
         if self._last_stamp_ns is not None and stamp_ns <= self._last_stamp_ns:
             # Out-of-order or repeated stamp: keep time monotonic for the filter.
             stamp_ns = self._last_stamp_ns + 1

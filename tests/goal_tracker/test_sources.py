@@ -12,6 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
+from services.goal_tracker.detectors import DetectionPipeline, HaarDetector
+from services.goal_tracker.selection import iou
 from services.goal_tracker.sources import (
     CameraOpenError,
     QueueSource,
@@ -197,6 +199,24 @@ def test_queue_source_keeps_order_and_rejects_garbage() -> None:
         q.push_jpeg(b"not a jpeg", 9)
     assert [q.read(0.1).stamp_ns, q.read(0.1).stamp_ns] == [5, 7]
     assert q.read(0.01) is None
+
+
+def test_a_grey_queue_source_decodes_the_luma_plane_a_haar_detector_finds_faces_in() -> None:
+    cam = SyntheticCamera(noise_sigma=0)
+    _, buf = cv2.imencode(".jpg", cam.render(0.0), [cv2.IMWRITE_JPEG_QUALITY, 90])
+    grey, colour = QueueSource("grey", grayscale=True), QueueSource("colour")
+    g = grey.push_jpeg(buf.tobytes(), 1).image
+    c = colour.push_jpeg(buf.tobytes(), 1).image
+    assert g.shape == c.shape[:2] and g.dtype == np.uint8
+    # The grey levels of the colour decode converted, to the rounding of the chroma (clipped
+    # at saturated edges).
+    diff = np.abs(g.astype(int) - cv2.cvtColor(c, cv2.COLOR_BGR2GRAY).astype(int))
+    assert diff.mean() < 0.5 and diff.max() <= 8
+    with pytest.raises(ValueError, match="cannot decode"):
+        grey.push_jpeg(b"", 2)
+    (truth,) = cam.truth(0.0)
+    found = DetectionPipeline(HaarDetector()).process(g, None).detections
+    assert any(iou(d.box, truth.box) > 0.5 for d in found)
 
 
 class _MjpegHandler(BaseHTTPRequestHandler):
