@@ -21,12 +21,16 @@ only after the answer (lockstep) and times each round trip with ``time.perf_coun
    control loop's QoS (real-time priority, blocking congestion control) as in
    :mod:`benchmarks.bus`'s raw path; pong's subscriber callback republishes the bytes it got
    (a 155-byte encoded ``ArmState``), ping's callback hands them to the waiting loop, which
-   checks they are the ones it sent.
+   checks they are the ones it sent. Both callbacks run on zenoh's receive thread
+   (``Callback(..., indirect=False)``), as the stack's control loop does.
 3. **the project's runtime through the same router**: :class:`services.bus.runtime.Service`
    clients; ping publishes a typed ``ArmState`` on ``<prefix>/arm/state``, pong's subscription
-   (bounded channel + worker thread, decode, type check) answers with an ``ArmCommand``
-   echoing the tick on ``<prefix>/arm/command``, ping's subscription decodes it and checks
-   the tick (as :mod:`benchmarks.bus`'s runtime path, with client sessions).
+   (decode, type check) answers with an ``ArmCommand`` echoing the tick on
+   ``<prefix>/arm/command``, ping's subscription decodes it and checks the tick. Both
+   subscriptions take the control stream as the stack's control loop does (the arm its
+   commands, the planner its states): ``"inline"`` delivery, on zenoh's receive thread
+   (:data:`CONTROL_DELIVERY`; the runtime's default for control streams, a bounded channel and
+   a worker thread, costs one thread wake-up more per message).
 4. and 5. **raw zenoh-python and the runtime peer to peer** (``raw-p2p``, ``runtime-p2p``): the
    same two pairs, ping and pong zenoh *peers* that listen on ``tcp/127.0.0.1:0`` and connect to
    the same router, which tells each about the other (gossip scouting); they then link directly
@@ -350,10 +354,11 @@ def render_markdown(res: dict[str, Any]) -> str:
         + "; ".join(res.get("dora_processes", [])) + ".",
         "- raw zenoh: `psm serve router` on 127.0.0.1, ping and pong zenoh clients (multicast "
         "off), express publishers, real-time priority, blocking congestion control; 155-byte "
-        "ArmState bytes echoed by pong's callback.",
+        "ArmState bytes echoed by pong's callback; callbacks on zenoh's receive thread.",
         "- project runtime: `Service` clients of the same router; typed `ArmState` on "
         "`<prefix>/arm/state`, answered by an `ArmCommand` echoing the tick on "
-        "`<prefix>/arm/command` (default delivery: bounded channel + worker thread).",
+        f"`<prefix>/arm/command`; `{CONTROL_DELIVERY}` delivery (on zenoh's receive thread), as the "
+        "stack's arm and planner take the control stream.",
         "- peer to peer (`-p2p`): the same two pairs with ping and pong zenoh peers that listen "
         "on 127.0.0.1 and connect to the same router, which tells each about the other "
         "(gossip): their messages then go directly from one to the other, as between the "
@@ -473,6 +478,19 @@ def _bus_cfg(endpoint: str, mode: str, prefix: str) -> Any:
         "zenoh.multicast": False, "prefix": prefix, "log_level": "WARNING"})
 
 
+#: The runtime's delivery of the control stream, as the stack's control loop takes it: the arm
+#: (commands) and the planner (states) handle it on zenoh's receive thread.
+CONTROL_DELIVERY = "inline"
+
+
+def _on_receive_thread(callback: Callable[[Any], None]) -> Any:
+    """A raw zenoh subscriber's handler that runs ``callback`` on zenoh's receive thread (as
+    :data:`CONTROL_DELIVERY`; a bare callable would get a Python callback thread of its own)."""
+    import zenoh
+
+    return zenoh.handlers.Callback(callback, indirect=False)
+
+
 def _express(session: Any, key: str) -> Any:
     import zenoh
 
@@ -586,7 +604,7 @@ def _raw_ping(endpoint: str, mode: str, control: str, out_file: Path, max_second
         reply[0] = sample.payload.to_bytes()
         event.set()
 
-    sub = session.declare_subscriber(f"{prefix}/pong", on_pong)
+    sub = session.declare_subscriber(f"{prefix}/pong", _on_receive_thread(on_pong))
     _wait_for(lambda: bool(pub.matching_status.matching), "raw pong")
     time.sleep(0.3)
     pool = [_state_bytes(i) for i in range(POOL)]
@@ -613,7 +631,7 @@ def _raw_pong(endpoint: str, mode: str, max_seconds: float) -> int:
     prefix = variant_prefix(variant_name("raw", mode))
     session = open_session(_bus_cfg(endpoint, mode, prefix).zenoh)
     pub = _express(session, f"{prefix}/pong")
-    sub = session.declare_subscriber(f"{prefix}/ping", lambda s: pub.put(s.payload))
+    sub = session.declare_subscriber(f"{prefix}/ping", _on_receive_thread(lambda s: pub.put(s.payload)))
     print("ready", flush=True)
     _wait_terminated(max_seconds)
     sub.undeclare()
@@ -636,7 +654,7 @@ def _runtime_ping(endpoint: str, mode: str, control: str, out_file: Path, max_se
         event.set()
 
     pub = svc.publisher(svc.keys.arm_state)
-    svc.subscribe(svc.keys.arm_command, on_cmd)
+    svc.subscribe(svc.keys.arm_command, on_cmd, delivery=CONTROL_DELIVERY)
     _wait_for(lambda: bool(pub.has_subscribers), "runtime pong")
     time.sleep(0.3)
     pool = [ArmState.FromString(_state_bytes(i)) for i in range(POOL)]
@@ -667,7 +685,7 @@ def _runtime_pong(endpoint: str, mode: str, max_seconds: float) -> int:
         cmd.put(ArmCommand(stamp_ns=state.stamp_ns, tick=state.tick,
                            mode=ArmCommand.CARTESIAN_ACCELERATION, source="pong"))
 
-    svc.subscribe(svc.keys.arm_state, on_state)
+    svc.subscribe(svc.keys.arm_state, on_state, delivery=CONTROL_DELIVERY)
     print("ready", flush=True)
     _wait_terminated(max_seconds)
     svc.close()
