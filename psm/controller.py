@@ -181,6 +181,7 @@ class PSMController:
         self._terminal_omega = terminal_omega
         self._goal: list[float] = []
         self._stops: list[float | None] = [None] * self._D
+        self._stop_sides: list[float | None] = [None] * self._D  # the obstacle's side of each stop
         self._t_e = [float(sum(c.durations)) for c in chains]
         self._modes = [MODE_SEGMENT] * self._D
         self.reset()
@@ -233,25 +234,44 @@ class PSMController:
         self._k_cap = [math.inf] * self._D
         self._done = False
 
-    def request_stop(self, dim: int, position: float) -> None:
+    def request_stop(self, dim: int, position: float, side: float | None = None) -> None:
         """Collision braking (eq. 15): dimension ``dim`` stops at ``position`` [unit] while the stop
-        lies between the state and the via-point it is heading to. Replaces an earlier request."""
+        lies between the state and the via-point it is heading to. Replaces an earlier request.
+
+        ``side`` (+1 or −1, optional): the obstacle lies on that side of ``position``. With it the
+        stop is also a barrier: an axis found past it on that side (pushed, drifted, or stopped
+        where it already was) is brought back to it by the holding spring instead of going on
+        with its segment; without it a stop only brakes an axis approaching it."""
         if not 0 <= dim < self._D:
             raise ShapeError(f"dimension index {dim} out of range 0..{self._D - 1}")
         if not math.isfinite(position):
             raise ParameterError("stop position must be finite")
+        if side is not None and side not in (1.0, -1.0):
+            raise ParameterError(f"stop side must be +1 or -1, got {side}")
         self._stops[dim] = float(position)
+        self._stop_sides[dim] = None if side is None else float(side)
 
-    def set_stops(self, positions: ArrayLike) -> None:
-        """Set every dimension's stop at once: ``positions (D,)`` [unit], NaN meaning no stop."""
+    def set_stops(self, positions: ArrayLike, sides: ArrayLike | None = None) -> None:
+        """Set every dimension's stop at once: ``positions (D,)`` [unit], NaN meaning no stop;
+        ``sides (D,)`` (optional): the side of each stop the obstacle lies on, +1 or −1 (0 or
+        NaN: not known), see :meth:`request_stop`."""
         p = np.asarray(positions, dtype=float).ravel()
         if p.shape != (self._D,):
             raise ShapeError(f"stops must have shape ({self._D},), got {np.shape(positions)}")
+        if sides is None:
+            q = [None] * self._D
+        else:
+            sd = np.asarray(sides, dtype=float).ravel()
+            if sd.shape != (self._D,):
+                raise ShapeError(f"stop sides must have shape ({self._D},), got {np.shape(sides)}")
+            q = [float(e) if e in (1.0, -1.0) else None for e in sd.tolist()]
         self._stops = [None if math.isnan(e) else float(e) for e in p]
+        self._stop_sides = [sd_ if st is not None else None for st, sd_ in zip(self._stops, q, strict=True)]
 
     def clear_stops(self) -> None:
         """Remove every collision stop; the motion resumes from wherever it is."""
         self._stops = [None] * self._D
+        self._stop_sides = [None] * self._D
 
     def reset(self) -> None:
         """Start the motion over (first segment) with the current goal (also the initial state)."""
@@ -526,12 +546,31 @@ class PSMController:
             # The stop is fixed in the world: it brakes the measured velocity (that relative to a
             # moving goal would let the axis drift through the stop at the goal's speed).
             vw = v_world
+            side = self._stop_sides[d]
+            on_line = gap * vw <= 0.0 and abs(gap) <= abs(vw) * dt
+            if side is not None and gap * side < 0.0 and not on_line:
+                # Past the stop on the obstacle's side by more than a tick of travel (pushed or
+                # drifted through it, or stopped where it already was): the holding spring brings
+                # the axis back to it instead of the segment's law carrying it on.
+                return self._terminal_law(-gap, vw, dt, a_max), math.inf, MODE_STOP
             if 0.0 < gap * direction <= abs(delta):
                 # Eq. 15: the obstacle stop lies ahead of the state, before the via-point.
                 if vw * gap > 0.0:
-                    return -vw * vw / (2.0 * gap), math.inf, MODE_STOP
-                return 0.0, math.inf, MODE_STOP
-            if gap * vw <= 0.0 and abs(gap) <= abs(vw) * dt:
+                    a_stop = vw * vw / (2.0 * gap)
+                    travel = abs(vw) * dt
+                    if travel > 2.0 * abs(gap):
+                        # The stop is nearer than half a tick of travel: vw² / 2 gap would turn
+                        # the velocity round within the tick and grows without bound as the gap
+                        # closes (a push at the stop would ask for thousands of m/s²). The
+                        # smaller constant deceleration that ends the tick on the stop instead.
+                        a_stop = 2.0 * (travel - abs(gap)) / (dt * dt)
+                    return -math.copysign(a_stop, vw), math.inf, MODE_STOP
+                # At rest, or moving back from the stop (the last braking tick's rounding, a
+                # push): brought to rest, not left drifting at that velocity.
+                if vw == 0.0:
+                    return 0.0, math.inf, MODE_STOP
+                return -math.copysign(min(m, abs(vw) / dt), vw), math.inf, MODE_STOP
+            if on_line:
                 # On (or a tick past) the stop line and still moving: brake to rest.
                 return -math.copysign(min(m, abs(vw) / dt), vw), math.inf, MODE_STOP
         if wrong_way:

@@ -108,7 +108,9 @@ class CollisionInfo:
     """One collision prediction as the planner uses it (from ``CollisionPrediction``).
 
     ``stamp_ns`` is the stamp of the arm state it was computed for; ``stop_position (3,)`` [m] the
-    stop coordinate per axis (NaN: the axis goes on); ``protective_stop``: stop every axis."""
+    stop coordinate per axis (NaN: the axis goes on); ``protective_stop``: stop every axis;
+    ``inside``: the end effector is inside the inflated obstacle, and the stopped axes stop where
+    they are."""
 
     stamp_ns: int
     tick: int
@@ -119,6 +121,7 @@ class CollisionInfo:
     min_clearance_m: float = math.inf
     closest_link: str = ""
     detail: str = ""
+    inside: bool = False  #: the end effector is inside the inflated obstacle (stops where it is)
 
 
 @dataclass
@@ -396,6 +399,10 @@ class TaskRunner:
         self._guard_target: NDArray[np.float64] | None = None
         self._blocked_by = ""  # obstacle at whose face the arm rests ("" = none)
         self._stops_set = False
+        # The stops applied last (per axis, NaN: none) and the obstacle they were for.
+        self._applied_stops = np.full(3, np.nan)
+        self._stop_sides = np.zeros(3)  # the obstacle's side of each (+1, -1; 0: none)
+        self._stop_obstacle = ""
         self.collision_stops = 0  # predicted collisions acted on (transitions into a stop)
         w = task.hold_omega
         self._kp, self._kd = w * w, 2.0 * w
@@ -540,7 +547,7 @@ class TaskRunner:
             out = self._unavailable(why, now_ns, x, v, quat, dt)
         else:
             if self.collision_policy is not None:
-                self._apply_stops(self._ctrl)
+                self._apply_stops(self._ctrl, x)
             out = self._available(spec, rep, goal, goal_vel, now_ns, x, v, quat, dt)
             if self.collision_policy is not None and self._phase == "run":
                 self._check_blocked(rep, dt)
@@ -685,7 +692,7 @@ class TaskRunner:
                 )
                 self._stops_set = False  # a fresh controller: the stops are applied to it anew
             if self.collision_policy is not None:
-                self._apply_stops(self._neutral_ctrl)  # the detour is guarded as the step is
+                self._apply_stops(self._neutral_ctrl, x)  # the detour is guarded as the step is
             acc = self._neutral_ctrl.step(x, v, dt)
             return PlannerOutput(np.asarray(acc, dtype=float), self._last_quat, np.zeros(3))
         return self._hold(x, v, quat)
@@ -724,9 +731,10 @@ class TaskRunner:
             self._event("RESUMED", "collision prediction available")
         return False
 
-    def _apply_stops(self, ctrl: PSMController | None) -> None:
-        """Eq. 15 on ``ctrl`` (the controller about to run): the latest prediction's stop
-        coordinates while it predicts a collision, none once the path is clear."""
+    def _apply_stops(self, ctrl: PSMController | None, x: NDArray[np.float64]) -> None:
+        """Eq. 15 on ``ctrl`` (the controller about to run, the end effector at ``x (3,)`` [m]):
+        the latest prediction's stop coordinates, with the obstacle's side of each, while it
+        predicts a collision; none once the path is clear."""
         info = self._collision
         assert info is not None and ctrl is not None
         if info.collision and info.stop_position.shape == (3,) and np.isfinite(info.stop_position).any():
@@ -741,7 +749,26 @@ class TaskRunner:
                         if math.isfinite(info.stop_position[d])
                     ),
                 )
-            ctrl.set_stops(info.stop_position)
+            stop = np.array(info.stop_position, dtype=float)
+            # The obstacle's side of each stop: the stop lies between the end effector and the
+            # obstacle, or, where it is the end effector's own coordinate (inside), the goal's
+            # side (the axes moving towards the goal would go deeper).
+            goal = ctrl.goal
+            side = np.sign(stop - x)
+            side = np.where(side == 0.0, np.sign(goal - x), side)
+            if self._stops_set and info.obstacle_id == self._stop_obstacle:
+                # The same obstacle as the last prediction: an axis that keeps its stop keeps the
+                # side it had (an axis pushed through its stop would otherwise see the side turn
+                # round), and inside, where a stop is set where the axis is at each prediction
+                # and would follow any drift of the arm deeper into the volume, the stop itself
+                # (the controller's holding spring brings the axis back to it).
+                kept = np.isfinite(stop) & np.isfinite(self._applied_stops)
+                side = np.where(kept, self._stop_sides, side)
+                if info.inside:
+                    stop = np.where(kept, self._applied_stops, stop)
+            ctrl.set_stops(stop, side)
+            self._applied_stops, self._stop_sides = stop, side
+            self._stop_obstacle = info.obstacle_id
             self._stops_set = True
         elif self._stops_set:
             ctrl.clear_stops()

@@ -422,6 +422,7 @@ class PlannerService(ServiceApp):
                     min_clearance_m=float(pr.min_clearance_m),
                     closest_link=pr.closest_link,
                     detail=pr.detail,
+                    inside=bool(pr.inside),
                 )
             )
             self._answer_if_ready()

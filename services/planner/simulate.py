@@ -75,7 +75,7 @@ def monitor_predictor(obstacles: Sequence[Any], robot: Any | None = None, **sect
         p = mon.check(stamp_ns, tick, np.asarray(x), np.asarray(v), np.asarray(q), np.asarray(dq), dt_s)
         return CollisionInfo(
             stamp_ns, tick, p.collision, p.obstacle_id, p.stop_position, p.protective_stop,
-            p.min_clearance_m, p.closest_link, p.detail,
+            p.min_clearance_m, p.closest_link, p.detail, p.inside,
         )
 
     predict.monitor = mon  # type: ignore[attr-defined]

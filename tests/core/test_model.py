@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -205,6 +206,67 @@ def test_a_collision_stop_holds_in_the_world_while_the_goal_moves(model: PhaseSp
     assert ctrl.modes[0] == MODE_STOP
     assert max_x <= x_ob + 1e-6
     assert abs(v[0]) < 1e-3  # at rest in the world (relative to the goal: -0.05 m/s)
+
+
+def _disturbed_at_stop(
+    model: PhaseSpaceModel, side: float | None, push: float = 0.0, shift: float = 0.0
+) -> tuple[np.ndarray, float, Any]:
+    """An axis braked at a stop 5 cm along x, then at tick 1000 pushed by ``push`` [m/s] or
+    moved by ``shift`` [m] (a drift), 1000 more ticks; the stop's obstacle on ``side`` (None: not
+    given). Returns the final state, the largest x after the disturbance and the controller."""
+    ctrl = model.controller()
+    x, v = model.start.copy(), np.zeros(3)
+    ctrl.request_stop(0, model.start[0] + 0.05, side)
+    max_x = -np.inf
+    for tick in range(2000):
+        if tick == 1000:
+            v[0] += push
+            x[0] += shift
+        a = ctrl.step(x, v, DT)
+        x = x + v * DT + 0.5 * a * DT * DT
+        v = v + a * DT
+        if tick >= 1000:
+            max_x = max(max_x, x[0])
+    return np.concatenate([x, v]), max_x, ctrl
+
+
+def test_an_axis_past_its_stop_on_the_obstacles_side_is_brought_back_to_it(model: PhaseSpaceModel) -> None:
+    """With the obstacle's side given a stop is a barrier: an axis found past it (a drift of the
+    arm) springs back to it instead of following its segment on towards the goal. Without the
+    side the stop only brakes an approaching axis, as eq. 15 does."""
+    assert model.goal[0] > model.start[0] + 0.05
+    stop = model.start[0] + 0.05
+    state, _, ctrl = _disturbed_at_stop(model, +1.0, shift=1e-3)
+    assert ctrl.modes[0] == MODE_STOP
+    assert state[0] == pytest.approx(stop, abs=1e-6) and abs(state[3]) < 1e-6
+    state, _, _ = _disturbed_at_stop(model, None, shift=1e-3)
+    assert state[0] > stop + 0.01
+
+
+def test_an_axis_pushed_at_its_stop_never_passes_it_and_comes_to_rest(model: PhaseSpaceModel) -> None:
+    """Pushed towards the obstacle while resting at the stop, the axis does not pass it (the
+    braking ends the tick on the stop), and moving back from it, it is braked to rest at the
+    wrong-way deceleration ``m`` instead of drifting back towards the start."""
+    stop = model.start[0] + 0.05
+    for side in (+1.0, None):
+        state, max_x, ctrl = _disturbed_at_stop(model, side, push=0.2)
+        assert ctrl.modes[0] == MODE_STOP
+        assert max_x <= stop + 1e-12
+        assert abs(state[3]) < 1e-9
+        reach = 0.2**2 / (2.0 * model.parameters.wrong_way_accel[0])  # braked at m from 0.2 m/s
+        assert stop - reach - 1e-3 < state[0] < stop
+
+
+def test_a_stop_brakes_at_most_to_end_the_tick_on_it(model: PhaseSpaceModel) -> None:
+    ctrl = model.controller()
+    x, v = model.start.copy(), np.zeros(3)
+    gap = 1e-9
+    ctrl.request_stop(0, x[0] + gap)
+    v[0] = 0.2
+    a = ctrl.step(x, v, DT)
+    # The constant deceleration that covers the gap in one tick: 2 (v dt − gap) / dt².
+    assert a[0] == pytest.approx(-2.0 * (0.2 * DT - gap) / DT**2, rel=1e-9)
+    assert x[0] + v[0] * DT + 0.5 * a[0] * DT * DT == pytest.approx(x[0] + gap, abs=1e-12)
 
 
 def test_time_to_go_counts_down(model: PhaseSpaceModel) -> None:

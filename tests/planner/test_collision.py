@@ -209,6 +209,37 @@ def test_the_monitor_gone_brakes_every_axis(feeding: FeedingConfig, models: Task
     assert out.acceleration[0] < 0.0  # braking the x motion
 
 
+def test_inside_an_obstacle_an_axis_keeps_its_first_stop_and_is_held_there(
+    feeding: FeedingConfig, models: TaskModels
+) -> None:
+    """Inside the inflated obstacle the monitor stops the axes going deeper where they are, at
+    every prediction: the planner keeps the stop an axis got first, with the obstacle's side
+    (towards the goal), so an arm drifting deeper is brought back instead of the stop following
+    it; a new obstacle or a clear path starts afresh."""
+    cfg = _only(feeding, "back_to_neutral")
+    from services.planner.sequencer import CollisionPolicy, TaskRunner
+
+    runner = TaskRunner(cfg.task, cfg.scene.positions(), models.models, collision=CollisionPolicy(0.02))
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    x0 = np.array(cfg.scene.neutral) + np.array([0.0, -0.10, 0.0])  # y goes +0.10 to the goal
+    dt_ns = 2_000_000
+
+    def inside(tick: int, y_stop: float, obstacle: str = "wall") -> CollisionInfo:
+        return CollisionInfo(tick * dt_ns, tick, collision=True, obstacle_id=obstacle,
+                             stop_position=np.array([np.nan, y_stop, np.nan]), inside=True)
+
+    runner.set_collision(inside(0, x0[1]))
+    runner.step(0, x0, np.zeros(3), q, 0.002)
+    drifted = x0 + np.array([0.0, 1e-3, 0.0])  # 1 mm deeper, towards the goal
+    runner.set_collision(inside(1, drifted[1]))
+    out = runner.step(dt_ns, drifted, np.zeros(3), q, 0.002, tick=1)
+    assert out.acceleration[1] < -1.0  # sprung back towards the first stop
+    # Another obstacle: its own stop, where the axis now is: held, not pulled.
+    runner.set_collision(inside(2, drifted[1], "post"))
+    out = runner.step(2 * dt_ns, drifted, np.zeros(3), q, 0.002, tick=2)
+    assert abs(out.acceleration[1]) < 1e-9
+
+
 def test_a_protective_stop_brakes_within_the_hold_limit_and_releases(
     feeding: FeedingConfig, models: TaskModels, free_reach: tuple[float, Any]
 ) -> None:
