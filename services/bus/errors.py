@@ -38,7 +38,7 @@ def zenoh_reason(exc: BaseException) -> str:
 
 def session_error(
     exc: BaseException, mode: str, connect: Sequence[str], listen: Sequence[str], *,
-    user: str = "",
+    user: str = "", zid: str = "",
 ) -> BusError:
     """A :class:`BusError` naming the endpoint(s) a failed ``zenoh.open`` was about.
 
@@ -50,6 +50,9 @@ def session_error(
         user: the user the session authenticates as (``""``: none). A router that refuses
             the credentials closes the connection during the handshake, which zenoh reports
             like an unreachable endpoint, so the message then names the credentials too.
+        zid: the session's fixed zenoh id (``""``: zenoh's random one). A router refuses a
+            second session with the id of one already connected, in the same way, so the
+            message then names the id.
     """
     reason = zenoh_reason(exc)
     low = reason.lower()
@@ -60,6 +63,12 @@ def session_error(
         return BusError(f"cannot listen on {where} ({mode} mode): {why}")
     if "unable to connect" in low:
         where = ", ".join(connect) or "any endpoint"
+        if zid:
+            return BusError(
+                f"cannot connect to {where} ({mode} mode) as zenoh id {zid}: a session with "
+                "this id is already connected there (the prefix's clock sampler: one synthetic "
+                "camera on the arm's clock per prefix), or nothing answered there"
+            )
         if user:
             return BusError(
                 f"cannot connect to {where} ({mode} mode) as user {user!r}: nothing answered "

@@ -284,7 +284,9 @@ def open_session(cfg: ZenohConfig, extra: Mapping[str, Any] | None = None) -> An
     try:
         session = zenoh.open(zenoh_config(cfg, extra))
     except zenoh.ZError as exc:
-        raise session_error(exc, cfg.mode, cfg.connect, cfg.listen, user=cfg.user) from None
+        raise session_error(
+            exc, cfg.mode, cfg.connect, cfg.listen, user=cfg.user, zid=str((extra or {}).get("id", ""))
+        ) from None
     if cfg.mode == "peer" and cfg.connect:
         wait_for_peer_links(session)
     return session

@@ -146,3 +146,25 @@ def test_the_stacks_sessions_carry_the_rule_and_the_camera_the_id() -> None:
     assert SyntheticCameraService.zenoh_extra(camera) == {"id": clock_sampler_zid("cell2")}  # type: ignore[arg-type]
     assert clock_sampler_zid("cell2") != clock_sampler_zid("psm")
     assert os.sched_getscheduler(0) == os.SCHED_OTHER
+
+
+def test_a_second_clock_sampler_on_a_prefix_is_refused_with_an_error_naming_its_id() -> None:
+    """zenoh refuses a second session with the id of one already connected, as if nothing had
+    answered: the error says which id, and why it is fixed."""
+    from services.bus.config import ZenohConfig
+    from services.bus.errors import BusError
+    from services.bus.runtime import open_session
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    router = open_session(ZenohConfig(mode="router", listen=[endpoint], multicast=False))
+    client = ZenohConfig(mode="client", connect=[endpoint], multicast=False)
+    zid = clock_sampler_zid(PREFIX)
+    first = open_session(client, {"id": zid})
+    try:
+        with pytest.raises(BusError, match=f"as zenoh id {zid}: a session with this id is already connected"):
+            open_session(client, {"id": zid})
+        open_session(client).close()  # another id connects
+    finally:
+        first.close()
+        router.close()

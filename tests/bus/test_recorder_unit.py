@@ -193,6 +193,9 @@ def test_session_errors_name_the_endpoint() -> None:
     assert zenoh_reason(exc) == "Unable to connect to any of [Single(tcp/127.0.0.1:7599)]!"
     err = session_error(exc, "client", ["tcp/127.0.0.1:7599"], [])
     assert str(err).startswith("cannot connect to tcp/127.0.0.1:7599 (client mode): ")
+    err = session_error(exc, "peer", ["tcp/127.0.0.1:7599"], [], zid="1ab")
+    assert str(err).startswith("cannot connect to tcp/127.0.0.1:7599 (peer mode) as zenoh id 1ab: "
+                               "a session with this id is already connected there")
     exc = RuntimeError("Can not create a new TCP listener bound to tcp/127.0.0.1:7601: "
                        "[127.0.0.1:7601: Address already in use (os error 98) at a/tcp.rs:61.] "
                        "at b/unicast.rs:338.")
