@@ -95,6 +95,11 @@ class DemoFigures:
         return cls(speed, (float(away[0]), float(away[1]), float(away[2])))
 
 
+
+def _sign(value: float) -> float:
+    """+1.0, −1.0 or 0.0 as ``value`` is positive, negative or zero."""
+    return 1.0 if value > 0.0 else -1.0 if value < 0.0 else 0.0
+
 @dataclass(frozen=True)
 class CollisionPolicy:
     """How the planner uses the obstacle monitor's predictions: a prediction older than
@@ -400,8 +405,8 @@ class TaskRunner:
         self._blocked_by = ""  # obstacle at whose face the arm rests ("" = none)
         self._stops_set = False
         # The stops applied last (per axis, NaN: none) and the obstacle they were for.
-        self._applied_stops = np.full(3, np.nan)
-        self._stop_sides = np.zeros(3)  # the obstacle's side of each (+1, -1; 0: none)
+        self._applied_stops = [math.nan] * 3
+        self._stop_sides = [0.0] * 3  # the obstacle's side of each (+1, -1; 0: none)
         self._stop_obstacle = ""
         self.collision_stops = 0  # predicted collisions acted on (transitions into a stop)
         w = task.hold_omega
@@ -749,23 +754,30 @@ class TaskRunner:
                         if math.isfinite(info.stop_position[d])
                     ),
                 )
-            stop = np.array(info.stop_position, dtype=float)
-            # The obstacle's side of each stop: the stop lies between the end effector and the
-            # obstacle, or, where it is the end effector's own coordinate (inside), the goal's
-            # side (the axes moving towards the goal would go deeper).
-            goal = ctrl.goal
-            side = np.sign(stop - x)
-            side = np.where(side == 0.0, np.sign(goal - x), side)
-            if self._stops_set and info.obstacle_id == self._stop_obstacle:
-                # The same obstacle as the last prediction: an axis that keeps its stop keeps the
-                # side it had (an axis pushed through its stop would otherwise see the side turn
-                # round), and inside, where a stop is set where the axis is at each prediction
-                # and would follow any drift of the arm deeper into the volume, the stop itself
-                # (the controller's holding spring brings the axis back to it).
-                kept = np.isfinite(stop) & np.isfinite(self._applied_stops)
-                side = np.where(kept, self._stop_sides, side)
-                if info.inside:
-                    stop = np.where(kept, self._applied_stops, stop)
+            # Per axis on Python floats (three of them, every tick while a stop is set).
+            stop = info.stop_position.tolist()
+            xs, goal = x.tolist(), ctrl.goal.tolist()
+            same = self._stops_set and info.obstacle_id == self._stop_obstacle
+            side = [0.0, 0.0, 0.0]
+            for d in range(3):
+                s_d = stop[d]
+                if s_d != s_d:  # NaN: no stop
+                    continue
+                prev = self._applied_stops[d]
+                if same and prev == prev:
+                    # The same obstacle as the last prediction: an axis that keeps its stop keeps
+                    # the side it had (an axis pushed through its stop would otherwise see the
+                    # side turn round), and inside, where a stop is set where the axis is at each
+                    # prediction and would follow any drift of the arm deeper into the volume,
+                    # the stop itself (the controller's holding spring brings the axis back).
+                    side[d] = self._stop_sides[d]
+                    if info.inside:
+                        stop[d] = prev
+                else:
+                    # The obstacle's side: the stop lies between the end effector and the
+                    # obstacle, or, where it is the end effector's own coordinate (inside), the
+                    # goal's side (the axes moving towards the goal would go deeper).
+                    side[d] = _sign(s_d - xs[d]) or _sign(goal[d] - xs[d])
             ctrl.set_stops(stop, side)
             self._applied_stops, self._stop_sides = stop, side
             self._stop_obstacle = info.obstacle_id
