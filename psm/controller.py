@@ -38,7 +38,9 @@ pushes, moved starts and moving goals (paper §III-C..F; corrected equations in 
   behind at the via-point, the synchronisation slows the others, and they in turn miss their
   next via-points' speeds;
 * **collision stop** (eq. 15): a per-dimension request "stop at x_ob" decelerates with
-  ``−v²/(2(x_ob − x))`` while the obstacle lies between the state and the via-point;
+  ``−v²/(2(x_ob − x))`` while the obstacle lies between the state and the via-point (at most the
+  deceleration that ends the tick on the stop); given the obstacle's side of the stop, a
+  dimension found past it is brought back to it by the holding spring;
 * **saturation**: the segment law (with the synchronisation term) is limited to
   ``max_acceleration`` per dimension; a state that cannot match a via-point's velocity in time
   passes it (a non-reversal via-point is skipped when that would take more than ``2 m``);
