@@ -22,7 +22,10 @@ only after the answer (lockstep) and times each round trip with ``time.perf_coun
    :mod:`benchmarks.bus`'s raw path; pong's subscriber callback republishes the bytes it got
    (a 155-byte encoded ``ArmState``), ping's callback hands them to the waiting loop, which
    checks they are the ones it sent. Both callbacks run on zenoh's receive thread
-   (``Callback(..., indirect=False)``), as the stack's control loop does.
+   (``Callback(..., indirect=False)``), as the stack's control loop does, and that thread keeps
+   its Python thread state (:func:`services.bus.runtime.receive_thread_handler`: without it
+   zenoh-python creates and destroys one for every sample, and the pair does ~25 % fewer round
+   trips a second here).
 3. **the project's runtime through the same router**: :class:`services.bus.runtime.Service`
    clients; ping publishes a typed ``ArmState`` on ``<prefix>/arm/state``, pong's subscription
    (decode, type check) answers with an ``ArmCommand`` echoing the tick on
@@ -485,10 +488,11 @@ CONTROL_DELIVERY = "inline"
 
 def _on_receive_thread(callback: Callable[[Any], None]) -> Any:
     """A raw zenoh subscriber's handler that runs ``callback`` on zenoh's receive thread (as
-    :data:`CONTROL_DELIVERY`; a bare callable would get a Python callback thread of its own)."""
-    import zenoh
+    :data:`CONTROL_DELIVERY`; a bare callable would get a Python callback thread of its own),
+    the thread keeping its Python thread state as the runtime's does."""
+    from services.bus.runtime import receive_thread_handler
 
-    return zenoh.handlers.Callback(callback, indirect=False)
+    return receive_thread_handler(callback)
 
 
 def _express(session: Any, key: str) -> Any:

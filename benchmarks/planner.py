@@ -39,7 +39,8 @@ b. **Closed loop, lockstep.** ``psm serve router``, ``psm plan`` and ``psm arm``
    last, received by this process): from 0.5 s after the task started to the last status before
    it was done; the arm's ``stats_file`` gives its whole-loop counts and the state→command
    latency. The bound: raw zenoh-python ping-pong (``benchmarks.peers``'s raw ping and pong,
-   express publishers, 155-byte ArmState bytes) on **the same router process**, in the same
+   express publishers, 155-byte ArmState bytes, callbacks on zenoh's receive thread keeping
+   their Python thread state as the arm's and the planner's do) on **the same router process**, in the same
    topology as the arm and the planner (peers linked directly), once before the task run and
    once after it: 1 / round-trip p50. Target: arm ticks/s ≥ 0.5× the bound.
 c. **Closed loop, realtime 500 Hz.** The same processes with ``clock = "realtime"`` (arm and

@@ -315,12 +315,11 @@ def _null_arm_main(argv: list[str]) -> int:
     fixed, pre-encoded ``ArmState`` (tick and stamps advanced in place) every 2 ms on the arm's
     state key by the wall clock and receives the commands in a callback that only copies the
     payload, like the arm (no simulation). Runs until SIGTERM."""
-    import zenoh
 
     from services.arm.config import ArmConfig
     from services.arm.sim import ArmSim
     from services.bus.config import ServiceConfig, add_config_arguments, config_from_args
-    from services.bus.runtime import Service, ServiceApp, run_service
+    from services.bus.runtime import Service, ServiceApp, receive_thread_handler, run_service
     from services.robot.protocol import StateEncoder
 
     ap = argparse.ArgumentParser()
@@ -338,7 +337,7 @@ def _null_arm_main(argv: list[str]) -> int:
             self.pub = svc.publisher(svc.keys.arm_state)
             sub = svc.session.declare_subscriber(
                 svc.keys.arm_command.key,
-                zenoh.handlers.Callback(lambda sample: sample.payload.to_bytes(), indirect=False),
+                receive_thread_handler(lambda sample: sample.payload.to_bytes()),
             )
             svc.on_close(sub.undeclare)
 

@@ -27,7 +27,7 @@ import numpy as np
 from services.arm.cli import PROBE_PATTERNS
 from services.bus.config import ServiceConfig, config_from_args
 from services.bus.messages import ArmCommand, ArmState, decode
-from services.bus.runtime import Service, ServiceApp, run_service
+from services.bus.runtime import Service, ServiceApp, receive_thread_handler, run_service
 from services.robot.protocol import cartesian_command, joint_command
 
 #: The pattern names (described in :data:`services.arm.cli.PROBE_PATTERNS`).
@@ -147,7 +147,6 @@ class _ProbeService(ServiceApp):
         self.args = args
 
     def setup(self, svc: Service) -> None:
-        import zenoh
 
         from services.threads import set_realtime_priority
 
@@ -177,7 +176,7 @@ class _ProbeService(ServiceApp):
                 pub.put(reply)
 
         sub = svc.session.declare_subscriber(
-            keys.arm_state.key, zenoh.handlers.Callback(on_state, indirect=False)
+            keys.arm_state.key, receive_thread_handler(on_state)
         )
         svc.on_close(sub.undeclare)
         svc.log.info("probe running", extra={"pattern": args.pattern})

@@ -50,7 +50,7 @@ import numpy as np
 from services.arm.config import ArmConfig
 from services.arm.sim import ArmSim
 from services.bus.messages import ArmCommand, MessageDecodeError, decode
-from services.bus.runtime import Service, ServiceApp, run_service
+from services.bus.runtime import Service, ServiceApp, receive_thread_handler, run_service
 from services.robot.arm_model import ArmModel, arm_model_scene
 from services.robot.protocol import (
     CommandRejectedError,
@@ -216,7 +216,6 @@ class ArmService(ServiceApp):
 
     def setup(self, svc: Service) -> None:
         """Declare the publishers, the command subscriber and the liveliness watches."""
-        import zenoh
 
         self.svc = svc
         self.keys = svc.keys
@@ -240,7 +239,7 @@ class ArmService(ServiceApp):
         self._cmd_key = self.keys.arm_command.key
         # On Zenoh's receive thread (no hop through a Python callback thread): it only enqueues.
         self._cmd_sub = svc.session.declare_subscriber(
-            self._cmd_key, zenoh.handlers.Callback(self._on_sample, indirect=False)
+            self._cmd_key, receive_thread_handler(self._on_sample)
         )
         svc.on_close(self._undeclare)
         if self.config.arm.watch_services:

@@ -45,7 +45,7 @@ import numpy as np
 
 from psm.obstacles import MAX_EXTENT_M, Obstacle, ObstacleError
 from services.bus.messages import ArmState, CollisionPrediction, Goal, ObstacleCommand, encoding_for
-from services.bus.runtime import Service, ServiceApp, run_service
+from services.bus.runtime import Service, ServiceApp, receive_thread_handler, run_service
 from services.obstacle_monitor.config import ObstacleMonitorConfig
 from services.obstacle_monitor.monitor import ObstacleMonitor, Prediction
 from services.obstacle_monitor.scene import (
@@ -128,7 +128,6 @@ class ObstacleMonitorService(ServiceApp):
     def setup(self, svc: Service) -> None:
         """Publishers (prediction, set, scene), the state subscriber on Zenoh's thread, the goal
         and command subscriptions."""
-        import zenoh
 
         self.svc = svc
         if self._rt_problem:
@@ -139,7 +138,7 @@ class ObstacleMonitorService(ServiceApp):
         self._scene_pub = svc.publisher(keys.scene)
         self._state_key = keys.arm_state.key
         sub = svc.session.declare_subscriber(
-            self._state_key, zenoh.handlers.Callback(self._on_state, indirect=False)
+            self._state_key, receive_thread_handler(self._on_state)
         )
         svc.on_close(sub.undeclare)
         svc.subscribe(keys.planner_goal, self._on_goal)

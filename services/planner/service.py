@@ -88,7 +88,7 @@ from services.bus.messages import (
     TaskEvent,
     encoding_for,
 )
-from services.bus.runtime import Service, ServiceApp, run_service
+from services.bus.runtime import Service, ServiceApp, receive_thread_handler, run_service
 from services.goal_tracker.frames import due_frame, frame_period_ns, frame_time_ns
 from services.planner.config import PlannerConfig
 from services.planner.feasibility import JointAccelerationScaling
@@ -229,7 +229,6 @@ class PlannerService(ServiceApp):
     def setup(self, svc: Service) -> None:
         """Declare the command, status, event and gripper publishers, the state subscriber (on
         Zenoh's thread) and the goal subscription."""
-        import zenoh
 
         self.svc = svc
         keys = svc.keys
@@ -244,7 +243,7 @@ class PlannerService(ServiceApp):
         self._viz_pub = svc.publisher(keys.viz_plan)
         self._state_key = keys.arm_state.key
         sub = svc.session.declare_subscriber(
-            self._state_key, zenoh.handlers.Callback(self._on_state, indirect=False)
+            self._state_key, receive_thread_handler(self._on_state)
         )
         svc.on_close(sub.undeclare)
         self._goals_prefix = keys.goals_all.key[:-1]
@@ -252,7 +251,7 @@ class PlannerService(ServiceApp):
         if self._check_collisions:
             self._pred_key = keys.collision.key
             pred_sub = svc.session.declare_subscriber(
-                self._pred_key, zenoh.handlers.Callback(self._on_prediction, indirect=False)
+                self._pred_key, receive_thread_handler(self._on_prediction)
             )
             svc.on_close(pred_sub.undeclare)
             # Not alive until its token is seen (no prediction yet means blocked either way).

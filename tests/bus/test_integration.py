@@ -369,6 +369,42 @@ def test_inline_delivery_runs_on_zenohs_receive_thread(router) -> None:  # type:
     assert all(n.startswith("rx-") for n in names), names
 
 
+def test_inline_delivery_keeps_one_python_thread_state_per_receive_thread(router) -> None:  # type: ignore[no-untyped-def]
+    """zenoh-python creates and destroys a Python thread state for every sample it hands to a
+    callback on its (Rust) receive thread; ``"inline"`` delivery keeps the first one for the
+    thread's life: a ``threading.local`` set in the handler is still set at the next sample,
+    so at most one fresh state per receive thread is seen over many samples."""
+    a = Service("sub", client_config(router)).start()
+    b = Service("pub", client_config(router)).start()
+    local = threading.local()
+    seen = {"samples": 0, "fresh": 0}
+
+    def handler(_m: ArmState, _key: str) -> None:
+        seen["samples"] += 1
+        if not getattr(local, "mark", False):
+            local.mark = True
+            seen["fresh"] += 1
+
+    try:
+        k = Keys()
+        a.subscribe(k.arm_state, handler, delivery="inline")
+        pub = b.publisher(k.arm_state)
+
+        def arrived() -> bool:
+            pub.put(ArmState(stamp_ns=1, tick=1))
+            return seen["samples"] > 0
+        assert wait_for(arrived, 10, period_s=0.05)
+        for tick in range(2, 202):
+            pub.put(ArmState(stamp_ns=tick, tick=tick))
+            time.sleep(0.0005)
+        assert wait_for(lambda: seen["samples"] >= 201, 10, period_s=0.02)
+    finally:
+        b.close()
+        a.close()
+    # zenoh's receive pool has a few threads; without the kept state every sample is fresh
+    assert 1 <= seen["fresh"] <= 8, seen
+
+
 def test_low_latency_transport_peers_exchange_every_message_in_order() -> None:
     """``zenoh.low_latency`` on both ends (as for the arm<->planner loop): the config reaches
     Zenoh (QoS off, which Zenoh requires) and a peer-to-peer link delivers everything in order."""
