@@ -362,8 +362,8 @@ def receive_thread_handler(callback: Callable[[Any], None]) -> Any:
     after sample (measured here: ~19 µs of CPU a sample, 9.0 % → 5.5 % of a core for 1,830
     samples/s with a callback that only counts; ``docs/bus.md``, *Callbacks on the receive
     thread*). On its first sample a receive thread keeps its thread state for good
-    (:func:`_keep_thread_state`): a few hundred bytes per receive thread, which lives as long
-    as the session.
+    (:func:`_keep_thread_state`): one thread state and its 16 KiB frame stack per receive
+    thread, which zenoh keeps for the session's life.
     """
     import zenoh
 
