@@ -315,7 +315,6 @@ def _null_arm_main(argv: list[str]) -> int:
     fixed, pre-encoded ``ArmState`` (tick and stamps advanced in place) every 2 ms on the arm's
     state key by the wall clock and receives the commands in a callback that only copies the
     payload, like the arm (no simulation). Runs until SIGTERM."""
-
     from services.arm.config import ArmConfig
     from services.arm.sim import ArmSim
     from services.bus.config import ServiceConfig, add_config_arguments, config_from_args

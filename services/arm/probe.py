@@ -147,7 +147,6 @@ class _ProbeService(ServiceApp):
         self.args = args
 
     def setup(self, svc: Service) -> None:
-
         from services.threads import set_realtime_priority
 
         args, probe = self.args, self.probe

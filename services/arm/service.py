@@ -237,7 +237,7 @@ class ArmService(ServiceApp):
                        "cell_mm": round(self.model.cell_m * 1e3, 3), "skipped": ",".join(self.model.skipped)},
             )
         self._cmd_key = self.keys.arm_command.key
-        # On Zenoh's receive thread (no hop through a Python callback thread): it only enqueues.
+        # On Zenoh's receive thread (no hop through a Python callback thread): see _on_sample.
         self._cmd_sub = svc.session.declare_subscriber(
             self._cmd_key, receive_thread_handler(self._on_sample)
         )
