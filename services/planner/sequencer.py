@@ -95,10 +95,10 @@ class DemoFigures:
         return cls(speed, (float(away[0]), float(away[1]), float(away[2])))
 
 
-
 def _sign(value: float) -> float:
     """+1.0, −1.0 or 0.0 as ``value`` is positive, negative or zero."""
     return 1.0 if value > 0.0 else -1.0 if value < 0.0 else 0.0
+
 
 @dataclass(frozen=True)
 class CollisionPolicy:
