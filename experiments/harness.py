@@ -19,7 +19,6 @@ trajectory bit for bit when it is given the goals the stack's planner received
 from __future__ import annotations
 
 import json
-import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -199,11 +198,14 @@ class RecordedRun:
     the predictions ``pred_tick (P,)``, ``collision (P,)``, ``protective_stop (P,)``,
     ``min_clearance (P,)`` [m]; ``goals``: every ``goals/*`` message as ``(name, position,
     stamp_ns, valid)``; ``planner_goals``: every ``planner/goal`` as ``(stamp_ns, name,
-    position)``; ``events``: the task events as ``(kind, step, state_tick)``."""
+    position)``; ``goal_updates``: the goal updates the planner's commands name
+    (``ArmCommand.goal_updates``) as ``(tick, name, stamp_ns)``, in order; ``events``: the task
+    events as ``(kind, step, state_tick)``."""
 
     arrays: dict[str, NDArray[Any]]
     goals: list[tuple[str, tuple[float, float, float], int, bool]] = field(default_factory=list)
     planner_goals: list[tuple[int, str, tuple[float, float, float]]] = field(default_factory=list)
+    goal_updates: list[tuple[int, str, int]] = field(default_factory=list)
     events: list[tuple[str, str, int]] = field(default_factory=list)
 
 
@@ -244,6 +246,8 @@ def read_stack_run(path: Path) -> RecordedRun:
     st = [states[k] for k in ticks]
     ct = sorted(cmds)
     cm = [cmds[k] for k in ct]
+    out.goal_updates = [(k, u.name, int(u.stamp_ns)) for k, m in zip(ct, cm, strict=True)
+                        for u in m.goal_updates]
     pt = sorted(preds)
     pr = [preds[k] for k in pt]
     out.arrays = {
@@ -269,40 +273,29 @@ def read_stack_run(path: Path) -> RecordedRun:
     return out
 
 
-def goal_schedule(run: RecordedRun, dt_s: float) -> list[Any]:
-    """The live goals of a stack run as the planner received them, for
+def goal_schedule(run: RecordedRun) -> list[Any]:
+    """The live goals of a stack run as its planner took them in, for
     :func:`~services.planner.simulate.simulate_task` (``goal_updates``).
 
-    Every ``goals/<name>`` message, in order. The planner publishes the goal it uses on
-    ``planner/goal`` stamped with the state it answered when it changed, so a message whose
-    position the planner then used is offered before that tick; a message superseded before the
-    planner used it, at the tick of the next one it used; any other (before its step ran, or after
-    the last change) at the first tick at or after its own stamp — the goal book uses such a
-    message only through its position, stamp and order."""
+    The planner's first command after it applied a goal update names it
+    (``ArmCommand.goal_updates``: name and stamp, in the order applied), so each update is offered
+    before the tick of that command, with the position and validity of the recorded
+    ``goals/<name>`` message of that name and stamp. An update no command names (after the last
+    command, or never applied) is not offered."""
     from services.planner.simulate import GoalUpdate
 
-    dt_ns = round(dt_s * 1e9)
-    used: dict[tuple[str, tuple[float, float, float]], int] = {}
-    live_from: dict[str, int] = {}
-    for stamp, name, pos in run.planner_goals:
-        used.setdefault((name, pos), stamp // dt_ns)
-        live_from.setdefault(name, stamp // dt_ns)
-    ticks: list[int] = [0] * len(run.goals)
-    bound = math.inf
-    for i in range(len(run.goals) - 1, -1, -1):
-        name, pos, stamp, _valid = run.goals[i]
-        own = -(-stamp // dt_ns)
-        k = used.get((name, pos))
-        if k is not None and k <= bound:
-            ticks[i] = k
-            bound = k
-        elif math.isfinite(bound) and name in live_from and own >= live_from[name]:
-            ticks[i] = int(bound)
-        else:
-            ticks[i] = int(min(own, bound))
-            bound = ticks[i]
-    return [GoalUpdate(k, name, pos, stamp, valid)
-            for k, (name, pos, stamp, valid) in zip(ticks, run.goals, strict=True)]
+    recorded: dict[tuple[str, int], list[tuple[tuple[float, float, float], bool]]] = {}
+    for name, pos, stamp, valid in run.goals:
+        recorded.setdefault((name, stamp), []).append((pos, valid))
+    out = []
+    for tick, name, stamp in run.goal_updates:
+        same = recorded.get((name, stamp))
+        if not same:
+            raise ValueError(f"the command of tick {tick} names goal update {name} @ {stamp} ns, "
+                             "which is not in the recording")
+        pos, valid = same.pop(0)
+        out.append(GoalUpdate(tick, name, pos, stamp, valid))
+    return out
 
 
 # --------------------------------------------------------------------------------------------

@@ -4,7 +4,9 @@ Every :class:`~services.bus.messages.ArmState` on ``<prefix>/arm/state`` is answ
 Cartesian :class:`~services.bus.messages.ArmCommand` on ``<prefix>/arm/command`` echoing the
 state's tick: the active step's PSM acceleration per dimension, the orientation reference that
 follows the reference dimension's ``t_e`` and its angular velocity
-(:class:`~services.planner.sequencer.TaskRunner`). Live goals come from ``<prefix>/goals/*``.
+(:class:`~services.planner.sequencer.TaskRunner`). Live goals come from ``<prefix>/goals/*``;
+the first command a goal update shapes names it (``goal_updates``: name and stamp, in the order
+applied), so a recording says at which tick the planner took in each update.
 
 Published besides the commands:
 
@@ -193,6 +195,8 @@ class PlannerService(ServiceApp):
         self._last_tick = -1
         self._last_stamp = 0
         self._last_reply = b""
+        #: The goal updates offered to the runner since the last command: ``(name, stamp_ns)``.
+        self._goal_updates: list[tuple[str, int]] = []
         self._stream = StateStream(
             sec.max_tick_gap, round(sec.stamp_tolerance_s * 1e9), sec.resync_after
         )
@@ -547,7 +551,16 @@ class PlannerService(ServiceApp):
         r.x, r.y, r.z, r.w = float(oa[0]), float(oa[1]), float(oa[2]), float(oa[3])
         w = cmd.angular_velocity_reference
         w.x, w.y, w.z = float(wa[0]), float(wa[1]), float(wa[2])
-        reply = cmd.SerializeToString()
+        if self._goal_updates:
+            refs = cmd.goal_updates
+            for name, goal_stamp in self._goal_updates:
+                ref = refs.add()
+                ref.name, ref.stamp_ns = name, goal_stamp
+            self._goal_updates.clear()
+            reply = cmd.SerializeToString()
+            del refs[:]
+        else:
+            reply = cmd.SerializeToString()
         self._last_tick, self._last_stamp, self._last_reply = tick, stamp, reply
         self.answered += 1
         return reply
@@ -611,6 +624,7 @@ class PlannerService(ServiceApp):
             problem = self.runner.update_goal(
                 name, (p.x, p.y, p.z), int(msg.stamp_ns), bool(msg.valid), msg.invalid_reason, now_ns=now
             )
+            self._goal_updates.append((name, int(msg.stamp_ns)))
             kind = self.runner.goals.last_rejection_kind
             sync = self._frame_period is not None and name in self._live_names
             if sync and (not problem or kind != "stamp"):

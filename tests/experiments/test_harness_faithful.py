@@ -2,7 +2,7 @@
 (``psm up --clock lockstep``, configs/stack.toml, the paper's wall in front of the person, the
 synthetic face still) and the same task run in process (:func:`experiments.harness.run_in_process`)
 give the same trajectory bit for bit when the in-process run is offered the goals the stack's
-planner received, at the ticks it used them (:func:`experiments.harness.goal_schedule`).
+planner took in, before the ticks it took them in (:func:`experiments.harness.goal_schedule`).
 
 Run as the experiments run it — the person's goal the true mouth position instead of the goal
 tracker's estimate — the trajectory is still identical up to the live step. In the live step it
@@ -44,7 +44,7 @@ def test_a_lockstep_stack_run_and_the_in_process_run_are_the_same_trajectory(
     rec = read_stack_run(run.recording)
     wall = ObstacleMonitorSection(obstacles_file=str(WALL_FILE)).start_obstacles()
     res = run_in_process(feeding, models, settings, obstacles=wall,
-                         goal_updates=goal_schedule(rec, settings.arm.dt_s))
+                         goal_updates=goal_schedule(rec))
     assert res.summary["success"]
     a, b = rec.arrays, res.trace
     # The in-process run ends at the tick the planner completed the task; the stack's arm goes on.

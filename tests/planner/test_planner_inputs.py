@@ -360,6 +360,27 @@ def test_a_goal_from_the_future_is_rejected() -> None:
     assert "person" not in p.runner.goals.live
 
 
+def test_the_first_command_after_goal_updates_names_them_in_the_order_applied() -> None:
+    """``ArmCommand.goal_updates``: what a recording needs to replay the planner's goal intake."""
+    p, _fake, cmd, _goal = _wired_planner("realtime")
+    p._goals_prefix = "psm/goals/"
+    p._on_state(_Sample(_state(0)))
+    p._on_goal(Goal(name="person", stamp_ns=1_000_000, valid=True, frame_id="base",
+                    position=Vec3(x=0.35, y=0.5, z=0.45)), "psm/goals/person")
+    p._on_goal(Goal(stamp_ns=1_500_000, valid=True, position=Vec3(x=0.35, y=3.0, z=0.45)),
+               "psm/goals/person")  # outside the workspace: rejected, still applied (counted)
+    p._on_goal(Goal(name="person", stamp_ns=900_000, valid=False), "psm/goals/person")  # old stamp
+    p._on_state(_Sample(_state(1)))
+    p._on_state(_Sample(_state(1)))  # the same state again: the same command
+    p._on_state(_Sample(_state(2)))
+    sent = [ArmCommand.FromString(b) for b in cmd.sent]
+    assert [m.tick for m in sent] == [0, 1, 1, 2]
+    named = [[(u.name, u.stamp_ns) for u in m.goal_updates] for m in sent]
+    assert named == [[], [("person", 1_000_000), ("person", 1_500_000), ("person", 900_000)],
+                     [("person", 1_000_000), ("person", 1_500_000), ("person", 900_000)], []]
+    assert p.runner.goals.rejected == 2
+
+
 # ---------------------------------------------------------------------------- live goal sync
 FRAME_NS = 1e9 / 30  # the synthetic camera's frame period at its default 30 fps
 

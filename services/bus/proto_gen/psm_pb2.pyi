@@ -70,7 +70,7 @@ class ArmState(_message.Message):
     def __init__(self, stamp_ns: _Optional[int] = ..., tick: _Optional[int] = ..., sim_time_ns: _Optional[int] = ..., joint_names: _Optional[_Iterable[str]] = ..., q: _Optional[_Iterable[float]] = ..., dq: _Optional[_Iterable[float]] = ..., ddq: _Optional[_Iterable[float]] = ..., ee_position: _Optional[_Union[Vec3, _Mapping]] = ..., ee_orientation: _Optional[_Union[Quat, _Mapping]] = ..., ee_linear_velocity: _Optional[_Union[Vec3, _Mapping]] = ..., ee_angular_velocity: _Optional[_Union[Vec3, _Mapping]] = ..., ee_linear_acceleration: _Optional[_Union[Vec3, _Mapping]] = ..., ee_angular_acceleration: _Optional[_Union[Vec3, _Mapping]] = ..., frame_id: _Optional[str] = ..., braking: _Optional[bool] = ..., watchdog_tripped: _Optional[bool] = ..., rejected_commands: _Optional[int] = ..., dt_s: _Optional[float] = ...) -> None: ...
 
 class ArmCommand(_message.Message):
-    __slots__ = ("stamp_ns", "seq", "tick", "mode", "linear_acceleration", "orientation_reference", "angular_velocity_reference", "has_angular_velocity_reference", "joint_accelerations", "source", "frame_id")
+    __slots__ = ("stamp_ns", "seq", "tick", "mode", "linear_acceleration", "orientation_reference", "angular_velocity_reference", "has_angular_velocity_reference", "joint_accelerations", "source", "frame_id", "goal_updates")
     class Mode(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
         __slots__ = ()
         MODE_UNSPECIFIED: _ClassVar[ArmCommand.Mode]
@@ -90,6 +90,7 @@ class ArmCommand(_message.Message):
     JOINT_ACCELERATIONS_FIELD_NUMBER: _ClassVar[int]
     SOURCE_FIELD_NUMBER: _ClassVar[int]
     FRAME_ID_FIELD_NUMBER: _ClassVar[int]
+    GOAL_UPDATES_FIELD_NUMBER: _ClassVar[int]
     stamp_ns: int
     seq: int
     tick: int
@@ -101,7 +102,16 @@ class ArmCommand(_message.Message):
     joint_accelerations: _containers.RepeatedScalarFieldContainer[float]
     source: str
     frame_id: str
-    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., tick: _Optional[int] = ..., mode: _Optional[_Union[ArmCommand.Mode, str]] = ..., linear_acceleration: _Optional[_Union[Vec3, _Mapping]] = ..., orientation_reference: _Optional[_Union[Quat, _Mapping]] = ..., angular_velocity_reference: _Optional[_Union[Vec3, _Mapping]] = ..., has_angular_velocity_reference: _Optional[bool] = ..., joint_accelerations: _Optional[_Iterable[float]] = ..., source: _Optional[str] = ..., frame_id: _Optional[str] = ...) -> None: ...
+    goal_updates: _containers.RepeatedCompositeFieldContainer[GoalUpdateRef]
+    def __init__(self, stamp_ns: _Optional[int] = ..., seq: _Optional[int] = ..., tick: _Optional[int] = ..., mode: _Optional[_Union[ArmCommand.Mode, str]] = ..., linear_acceleration: _Optional[_Union[Vec3, _Mapping]] = ..., orientation_reference: _Optional[_Union[Quat, _Mapping]] = ..., angular_velocity_reference: _Optional[_Union[Vec3, _Mapping]] = ..., has_angular_velocity_reference: _Optional[bool] = ..., joint_accelerations: _Optional[_Iterable[float]] = ..., source: _Optional[str] = ..., frame_id: _Optional[str] = ..., goal_updates: _Optional[_Iterable[_Union[GoalUpdateRef, _Mapping]]] = ...) -> None: ...
+
+class GoalUpdateRef(_message.Message):
+    __slots__ = ("name", "stamp_ns")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    STAMP_NS_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    stamp_ns: int
+    def __init__(self, name: _Optional[str] = ..., stamp_ns: _Optional[int] = ...) -> None: ...
 
 class Goal(_message.Message):
     __slots__ = ("stamp_ns", "seq", "name", "position", "covariance", "valid", "invalid_reason", "source", "frame_stamp_ns", "frame_id", "velocity")
