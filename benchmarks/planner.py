@@ -61,7 +61,11 @@ d. **The whole feeding stack, realtime**, through ``psm up``'s code
    task done), % of one core. The supervisor runs inside this benchmark's process; its CPU (the
    whole benchmark process, sampler included) is shown beside the stack's. Target: the seven
    stack processes ≤ 100 % of one core in total. Also reported: the task's outcome from the
-   supervisor's summary.
+   supervisor's summary, and the stack's **platform floor** in the same run
+   (:mod:`benchmarks.null_stack`): the seven processes replaced by null services that carry the
+   same bus traffic (the run's recording gives each key's rate and a payload) and do no work,
+   CPU over a 15 s window after 3 s of warm-up — what the stack's messages alone cost on this
+   machine, per process and in total, and the stack's total as a multiple of it.
 """
 
 from __future__ import annotations
@@ -105,6 +109,8 @@ WINDOW_SKIP_S = 0.5
 TASK_TIMEOUT_S = 180.0  #: one task run (wall clock)
 STARTUP_TIMEOUT_S = 120.0  #: one process's liveliness token
 STACK_PROCESSES = ("router", "recorder", "arm", "camera", "goal_tracker", "obstacle_monitor", "planner")
+FLOOR_WINDOW_S = 15.0  #: the platform floor's CPU window (part d), s
+FLOOR_WARMUP_S = 3.0  #: before it, s
 
 
 # --------------------------------------------------------------------------------------------
@@ -825,6 +831,20 @@ def whole_stack(workdir: Path, clock: str = "realtime") -> dict[str, Any]:
     }
 
 
+def stack_floor(recording: Path, workdir: Path, seconds: float = FLOOR_WINDOW_S) -> dict[str, Any]:
+    """The platform floor of part (d) (:func:`benchmarks.null_stack.run_null_stack` with the
+    traffic of ``recording``); ``{"problem": ...}`` when the recording cannot give it."""
+    from benchmarks.null_stack import run_null_stack, traffic_profile
+
+    try:
+        profile = traffic_profile(recording)
+    except (OSError, ValueError) as exc:
+        return {"problem": f"no traffic profile: {exc}"}
+    res = run_null_stack(profile, seconds=seconds, warmup_s=FLOOR_WARMUP_S, workdir=workdir)
+    return res | {"rates_hz": {k: round(v["rate_hz"], 1) for k, v in profile["keys"].items()},
+                  "payload_bytes": {k: len(v["payload_hex"]) // 2 for k, v in profile["keys"].items()}}
+
+
 # --------------------------------------------------------------------------------------------
 # Verdicts and report
 # --------------------------------------------------------------------------------------------
@@ -845,11 +865,14 @@ def verdicts(res: dict[str, Any]) -> dict[str, Any]:
         out["realtime_missed"] = miss_verdict(c.get("arm", {}), c.get("timer", {}))
     d = res.get("stack")
     if d:
+        floor = (d.get("floor") or {}).get("total_pct")
         out["stack_cpu"] = {"value_pct": d["stack_total_pct"], "target_pct": STACK_CPU_TARGET_PCT,
                             "with_supervisor_pct": d["total_with_supervisor_pct"],
                             "ok": bool(d["stack_total_pct"] <= STACK_CPU_TARGET_PCT),
                             "ok_with_supervisor":
-                                bool(d["total_with_supervisor_pct"] <= STACK_CPU_TARGET_PCT)}
+                                bool(d["total_with_supervisor_pct"] <= STACK_CPU_TARGET_PCT),
+                            "floor_pct": floor,
+                            "ratio_to_floor": d["stack_total_pct"] / floor if floor else None}
     return out
 
 
@@ -918,7 +941,11 @@ def render_markdown(res: dict[str, Any]) -> str:
         lines.append(
             f"| (d) whole feeding stack (realtime) ≤ {STACK_CPU_TARGET_PCT:.0f} % of one core | "
             f"**{s['value_pct']:.1f} %** for the seven stack processes ({s['with_supervisor_pct']:.1f} % "
-            f"with the supervisor's process) | {_ok(s['ok'])}"
+            f"with the supervisor's process)"
+            + ("" if not s.get("floor_pct") else
+               f"; the same traffic without the work (platform floor, same run): {s['floor_pct']:.1f} %, "
+               f"the stack {s['ratio_to_floor']:.2f}× it")
+            + f" | {_ok(s['ok'])}"
             + ("" if s["ok"] == s["ok_with_supervisor"] else
                f" (with the supervisor: {_ok(s['ok_with_supervisor'])})") + " |")
     a = res.get("tick_cost")
@@ -1039,12 +1066,17 @@ def render_markdown(res: dict[str, Any]) -> str:
             "| process | CPU % |",
             "|---|---:|",
         ]
+        floor = d.get("floor") or {}
+        fl = floor.get("cpu_pct") or {}
+        if fl:
+            lines[-2:] = ["| process | CPU % | platform floor: null service, CPU % |", "|---|---:|---:|"]
         for n in (*STACK_PROCESSES, "supervisor (benchmark process)"):
             if n in cpu["cpu_pct"]:
-                lines.append(f"| {n} | {cpu['cpu_pct'][n]:.1f} |")
+                lines.append(f"| {n} | {cpu['cpu_pct'][n]:.1f} |" + (f" {_f(fl.get(n), 1)} |" if fl else ""))
         lines += [
-            f"| **stack total (seven processes)** | **{d['stack_total_pct']:.1f}** |",
-            f"| total with the supervisor | {d['total_with_supervisor_pct']:.1f} |",
+            f"| **stack total (seven processes)** | **{d['stack_total_pct']:.1f}** |"
+            + (f" **{floor['total_pct']:.1f}** |" if fl else ""),
+            f"| total with the supervisor | {d['total_with_supervisor_pct']:.1f} |" + (" |" if fl else ""),
             "",
             f"Task: {_task_line(d.get('task', {}))}. Arm: {_f(arm.get('published_per_s'), 1)} states/s, "
             f"missed ticks {_f(arm.get('missed_ticks'))} of {_f(arm.get('ticks'))}, late commands "
@@ -1052,6 +1084,21 @@ def render_markdown(res: dict[str, Any]) -> str:
             f"{_lat(arm.get('state_to_command_latency'))}; in the planner "
             f"{_lat(d.get('planner_latency_us'), 'p50', 'p99', 'max')}.",
         ]
+        if fl:
+            lines += [
+                "",
+                "Platform floor (`benchmarks.null_stack`, after the stack, "
+                f"{floor['window_s']:.1f} s window): "
+                "each process replaced by a null service on the same skeleton and topology that "
+                "subscribes to what it subscribes to and publishes what it publishes, at the rates and with "
+                "payloads of this run's recording (answers per input as the real process: a command and a "
+                "prediction per arm state, the tracker's outputs per frame, a frame every n-th state), "
+                f"doing no work: **{floor['total_pct']:.1f} %** of one core; the stack "
+                f"{d['stack_total_pct'] / floor['total_pct']:.2f}× it. The stack's own work is the "
+                f"difference, {d['stack_total_pct'] - floor['total_pct']:.1f} points.",
+            ]
+        elif floor.get("problem"):
+            lines += ["", f"Platform floor: not measured ({floor['problem']})."]
         steps = (d.get("task") or {}).get("steps") or []
         if steps:
             lines += ["", "| step | outcome | duration s | pos err mm | peak speed × demo |",
@@ -1125,6 +1172,10 @@ def main(argv: list[str] | None = None) -> int:
             res["stack"] = whole_stack(wd)
             print(json.dumps({"cpu": res["stack"]["cpu"], "total": res["stack"]["stack_total_pct"]}),
                   flush=True)
+            print("(d) platform floor: the same traffic, null services ...", flush=True)
+            res["stack"]["floor"] = stack_floor(wd / "run.mcap", Path(tmp) / "floor")
+            print(json.dumps({k: res["stack"]["floor"].get(k) for k in ("cpu_pct", "total_pct",
+                                                                         "problem")}), flush=True)
     busy1 = _cpu_times()
     res["wall_s"] = round(time.monotonic() - t_run, 1)
     res["machine_busy_pct_during"] = round(100.0 * (busy1[0] - busy0[0]) / max(1, busy1[1] - busy0[1]), 1)

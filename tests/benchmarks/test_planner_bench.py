@@ -126,7 +126,9 @@ def _result() -> dict[str, Any]:
                   "cpu": {"window_s": 18.0, "cpu_pct": {"router": 11.0, "arm": 32.0, "planner": 23.0,
                                                         "supervisor (benchmark process)": 1.0}},
                   "stack_total_pct": 66.0, "total_with_supervisor_pct": 67.0, "task": task,
-                  "planner_latency_us": lat, "arm": arm_rt},
+                  "planner_latency_us": lat, "arm": arm_rt,
+                  "floor": {"window_s": 15.0, "total_pct": 40.0,
+                            "cpu_pct": {"router": 0.1, "arm": 11.0, "planner": 10.0}}},
     }
     res["verdicts"] = verdicts(res)
     return res
@@ -144,6 +146,9 @@ def test_verdicts_and_report_on_synthetic_numbers() -> None:
                     "(d) The whole feeding stack"):
         assert heading in md
     assert "66.0 %" in md
+    # The platform floor of the same run beside each process and in the verdict.
+    assert v["stack_cpu"]["floor_pct"] == 40.0 and v["stack_cpu"]["ratio_to_floor"] == pytest.approx(1.65)
+    assert "| arm | 32.0 | 11.0 |" in md and "**40.0**" in md and "the stack 1.65× it" in md
 
 
 def test_a_short_recorded_stream_replays_byte_for_byte() -> None:

@@ -1,0 +1,277 @@
+"""The feeding stack's platform floor: every process's bus traffic without its work.
+
+The reference the whole feeding stack's CPU (``benchmarks.planner`` part d) is read against, in
+the same run: what the stack's messages cost on this machine before any service does anything
+with them. Each process of ``configs/stack.toml`` is replaced by a *null service*
+(:func:`null_service_main`) on the same service skeleton (``services.bus.runtime.Service``:
+session, liveliness token, ``ServiceStatus``) and the same bus topology (peers linked directly,
+the real ``psm serve router`` for discovery), which
+
+* subscribes to what the real process subscribes to (:data:`TRAFFIC`, after the access-control
+  roles table :func:`services.bus.acl.roles`), each sample copied out of zenoh on its receive
+  thread (:func:`services.bus.runtime.receive_thread_handler`) and dropped;
+* publishes what the real process publishes, with the topic's QoS (``Service.publisher``) and a
+  payload recorded from a real stack run (of each key the sample of median size, so the sizes
+  are real: a 21 kB JPEG frame, a 0.4 kB arm state), either in answer to an input as the real
+  process does (a command per arm state, a prediction per arm state, the tracker's four outputs
+  per frame, a frame every n-th arm state) or at the rate the recording shows, by the wall
+  clock.
+
+The profile (:func:`traffic_profile`) is read from the recording of the real run: per key its
+rate over the span of the planner's commands (the task), its encoding and its median-size
+payload. One-off messages (the arm's model, the obstacle set, the scene, a gripper command)
+are left out. The null services run at normal scheduling (the real arm and planner at
+``SCHED_FIFO``).
+
+    profile = traffic_profile(Path("run.mcap"))
+    res = run_null_stack(profile, seconds=15.0, warmup_s=3.0, workdir=Path("/tmp/null"))
+    res["cpu_pct"]          # per process, % of one core
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import sys
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+#: Keys are relative to the cell's prefix.
+STATE = "arm/state"
+IMAGE = "camera/cam0/image"
+
+
+@dataclass(frozen=True)
+class Traffic:
+    """One process's bus traffic: the key expressions it subscribes to; the keys it publishes in
+    answer to an input (``answers``: output key → (input key expression, every n-th input; ``0``:
+    n from the two recorded rates)); the keys it publishes at their recorded rate (``timed``)."""
+
+    service: str
+    subscribes: tuple[str, ...]
+    answers: Mapping[str, tuple[str, int]]
+    timed: tuple[str, ...] = ()
+
+
+#: The stack's processes (``configs/stack.toml`` names) and their traffic; the subscriptions
+#: are those of :func:`services.bus.acl.roles`.
+TRAFFIC: dict[str, Traffic] = {
+    "recorder": Traffic("recorder", ("**",), {}),
+    "arm": Traffic("arm", ("arm/command",), {}, timed=(STATE, "arm/transforms")),
+    "camera": Traffic("camera_synth", (STATE,), {IMAGE: (STATE, 0)}),
+    "goal_tracker": Traffic(
+        "goal_tracker", ("camera/*/image", STATE),
+        {k: ("camera/*/image", 1) for k in ("goals/person", "vision/faces", "camera/cam0/annotations",
+                                            "viz/goals/person")},
+    ),
+    "obstacle_monitor": Traffic("obstacle_monitor", (STATE, "planner/goal", "obstacles/command"),
+                                {"collision": (STATE, 1)}),
+    "planner": Traffic("planner", (STATE, "goals/*", "collision"), {"arm/command": (STATE, 1)},
+                       timed=("planner/status", "viz/plan", "planner/goal", "task/events")),
+}
+
+
+def traffic_profile(recording: Path) -> dict[str, Any]:
+    """``{"span_s", "keys": {key: {"encoding", "rate_hz", "payload_hex"}}}`` of the keys
+    :data:`TRAFFIC` names, from a recording of the stack (keys relative to its prefix). Rates
+    are counts over the span of the planner's commands (the task: every process active)."""
+    from services.bus.log import read_samples
+
+    wanted = {k for t in TRAFFIC.values() for k in (*t.answers, *t.timed)}
+    times: dict[str, list[int]] = {k: [] for k in wanted}
+    payloads: dict[str, list[bytes]] = {k: [] for k in wanted}
+    encoding: dict[str, str] = {}
+    for s in read_samples(recording, quiet=True):
+        rel = s.topic.split("/", 1)[1] if "/" in s.topic else s.topic
+        if rel in wanted:
+            times[rel].append(s.log_time_ns)
+            payloads[rel].append(s.payload)
+            encoding[rel] = s.encoding
+    missing = sorted(wanted - set(encoding))
+    if missing:
+        raise ValueError(f"{recording}: no sample of {', '.join(missing)}")
+    t0, t1 = times["arm/command"][0], times["arm/command"][-1]
+    if t1 <= t0:
+        raise ValueError(f"{recording}: no command stream to take the rates over")
+    span_s = (t1 - t0) * 1e-9
+    rate = {k: sum(1 for t in v if t0 <= t <= t1) / span_s for k, v in times.items()}
+    median = {k: sorted(v, key=len)[len(v) // 2] for k, v in payloads.items()}
+    return {"span_s": span_s, "keys": {
+        k: {"encoding": encoding[k], "rate_hz": rate[k], "payload_hex": median[k].hex()}
+        for k in sorted(encoding)
+    }}
+
+
+def null_service_main(argv: list[str]) -> int:
+    """One null service (``--role`` a key of :data:`TRAFFIC`, ``--profile`` a
+    :func:`traffic_profile` JSON file; the bus flags of any service). Runs until SIGTERM."""
+    from services.bus.config import ServiceConfig, add_config_arguments, config_from_args
+    from services.bus.runtime import Service, ServiceApp, receive_thread_handler, run_service
+
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--role", choices=sorted(TRAFFIC), required=True)
+    ap.add_argument("--profile", type=Path, required=True)
+    ap.add_argument("--counts", type=Path, required=True, help="JSON file of the counts, at exit")
+    add_config_arguments(ap)
+    args = ap.parse_args(argv)
+    cfg = config_from_args(ServiceConfig, args)
+    traffic = TRAFFIC[args.role]
+    keys = json.loads(args.profile.read_text())["keys"]
+
+    class NullService(ServiceApp):
+        name = traffic.service
+
+        def __init__(self, config: ServiceConfig) -> None:
+            super().__init__(config)
+            self.received: dict[str, list[int]] = {}  # input key expression -> [count]
+            self.published: dict[str, list[int]] = {}  # output key -> [count]
+
+        def setup(self, svc: Service) -> None:
+            prefix = svc.keys.prefix
+
+            def publisher(rel: str) -> tuple[Any, bytes]:
+                key = f"{prefix}/{rel}"
+                topic = svc.keys.topic_for_key(key)
+                if topic is None:
+                    raise SystemExit(f"null service: {key} is not a catalogue key")
+                return svc.publisher(topic, key), bytes.fromhex(keys[rel]["payload_hex"])
+
+            by_input: dict[str, list[tuple[Any, bytes, int]]] = {}
+            for out, (inp, every) in traffic.answers.items():
+                if every == 0:
+                    in_rate = keys[STATE]["rate_hz"] if inp == STATE else 0.0
+                    every = max(1, round(in_rate / keys[out]["rate_hz"])) if in_rate else 1
+                pub, payload = publisher(out)
+                sent = self.published.setdefault(out, [0])
+                by_input.setdefault(inp, []).append((pub, payload, every, sent))
+            self.timed = [(*publisher(rel), keys[rel]["rate_hz"], self.published.setdefault(rel, [0]))
+                          for rel in traffic.timed]
+            for inp in traffic.subscribes:
+                handler = self._handler(by_input.get(inp, []), self.received.setdefault(inp, [0]))
+                svc.on_close(svc.session.declare_subscriber(
+                    f"{prefix}/{inp}", receive_thread_handler(handler)).undeclare)
+
+        @staticmethod
+        def _handler(outs: list[tuple[Any, bytes, int, list[int]]], n: list[int]) -> Any:
+            def on_sample(sample: Any) -> None:
+                sample.payload.to_bytes()
+                n[0] += 1
+                for pub, payload, every, sent in outs:
+                    if n[0] % every == 0:
+                        pub.put_bytes(payload)
+                        sent[0] += 1
+
+            return on_sample
+
+        def loop(self, svc: Service) -> None:
+            if not self.timed:
+                svc.stop_event.wait()
+                return
+            t0 = time.monotonic()
+            while not svc.stop_event.is_set():
+                due = [t0 + (sent[0] + 1) / rate for _p, _b, rate, sent in self.timed]
+                i = min(range(len(due)), key=due.__getitem__)
+                wait = due[i] - time.monotonic()
+                if wait > 0 and svc.stop_event.wait(wait):
+                    return
+                pub, payload, _rate, sent = self.timed[i]
+                pub.put_bytes(payload)
+                sent[0] += 1
+
+        def teardown(self, svc: Service) -> None:
+            args.counts.write_text(json.dumps({
+                "received": {k: v[0] for k, v in self.received.items()},
+                "published": {k: v[0] for k, v in self.published.items()},
+            }))
+
+    return run_service(NullService(cfg))
+
+
+def run_null_stack(profile: Mapping[str, Any], *, seconds: float, warmup_s: float,
+                   workdir: Path) -> dict[str, Any]:
+    """Start the real router and one null service per process of :data:`TRAFFIC` (the stack's
+    start order) on a fresh loopback port, wait ``warmup_s``, measure each process's CPU over
+    ``seconds`` (``/proc/<pid>/stat``, % of one core), stop them. Returns ``{"window_s",
+    "cpu_pct", "total_pct", "alive_during_window", "counts", "ran_s", "logs_tail"}``; ``counts``:
+    per null service the samples it received per subscription and published per key over its
+    whole run (about ``ran_s``, warm-up and start-up included)."""
+    from benchmarks.stack import bus_flags, stack_header
+    from services.stack import load_stack
+    from services.supervisor import ManagedProcess, Supervisor, cpu_seconds, free_port
+
+    workdir.mkdir(parents=True, exist_ok=True)
+    (workdir / "profile.json").write_text(json.dumps(profile))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    stack_file = workdir / "router.toml"
+    stack_file.write_text(stack_header("null stack", endpoint, workdir)
+                          + '[[stack.processes]]\nname = "router"\ncommand = ["serve", "router"]\n\n'
+                          + f"[router]\nlisten = [{json.dumps(endpoint)}]\n")
+    sup = Supervisor(load_stack(stack_file), out=io.StringIO(), live=False)
+    procs: dict[str, ManagedProcess] = {}
+    try:
+        sup.start()
+        procs["router"] = sup.rows[0].proc
+        bus = [*bus_flags(endpoint), "--log-level", "WARNING"]
+        for role in TRAFFIC:
+            procs[role] = ManagedProcess(
+                role, [sys.executable, "-m", "benchmarks.null_stack", "--role", role, "--profile",
+                       str(workdir / "profile.json"), "--counts", str(workdir / f"null_{role}.json"),
+                       *bus], workdir / f"null_{role}.log")
+        t_start = time.monotonic()
+        time.sleep(warmup_s)
+        before = {n: cpu_seconds(p.pid) or 0.0 for n, p in procs.items()}
+        t0 = time.monotonic()
+        time.sleep(seconds)
+        window = time.monotonic() - t0
+        after = {n: cpu_seconds(p.pid) or 0.0 for n, p in procs.items()}
+        alive = {n: p.poll() is None for n, p in procs.items()}
+    finally:
+        for name, proc in reversed(procs.items()):
+            if name != "router":
+                proc.stop(15)
+        sup.shutdown()
+    ran_s = time.monotonic() - t_start
+    cpu = {n: round(100.0 * (after[n] - before[n]) / window, 1) for n in procs}
+    logs = {n: (workdir / f"null_{n}.log").read_text(errors="replace")[-2000:]
+            for n in TRAFFIC if (workdir / f"null_{n}.log").exists()}
+    counts = {n: json.loads((workdir / f"null_{n}.json").read_text())
+              for n in TRAFFIC if (workdir / f"null_{n}.json").exists()}
+    return {
+        "window_s": round(window, 2),
+        "cpu_pct": cpu,
+        "total_pct": round(sum(cpu.values()), 1),
+        "alive_during_window": alive,
+        "counts": counts,
+        "ran_s": round(ran_s, 2),
+        # A traceback or a one-line error of the service skeleton (zenoh's own log lines aside).
+        "logs_tail": {n: t for n, t in logs.items() if "Traceback" in t or ": error:" in t},
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m benchmarks.null_stack --role ROLE --profile FILE [bus flags]``: one null
+    service (started by :func:`run_null_stack`); ``python -m benchmarks.null_stack RUN.mcap``:
+    the null stack of that recording's traffic, CPU printed as JSON."""
+    argv = sys.argv[1:] if argv is None else argv
+    if "--role" in argv:
+        return null_service_main(argv)
+    ap = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    ap.add_argument("recording", type=Path, help="a recording of the feeding stack (psm up --record)")
+    ap.add_argument("--seconds", type=float, default=15.0)
+    ap.add_argument("--warmup", type=float, default=3.0)
+    args = ap.parse_args(argv)
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="null-stack-") as tmp:
+        res = run_null_stack(traffic_profile(args.recording), seconds=args.seconds,
+                             warmup_s=args.warmup, workdir=Path(tmp))
+    print(json.dumps(res, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

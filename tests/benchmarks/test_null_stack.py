@@ -1,0 +1,91 @@
+"""The feeding stack's platform floor (benchmarks/null_stack.py): the traffic profile read from a
+recording (rates over the task, median payloads, a missing key named), and a short null stack on
+loopback that carries that traffic: every null service up, the answers one per input as the real
+processes give them, the timed keys at their rates."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from benchmarks.null_stack import TRAFFIC, run_null_stack, traffic_profile
+from experiments.harness import TraceWriter
+from services.bus.messages import Keys
+
+WANTED = sorted({k for t in TRAFFIC.values() for k in (*t.answers, *t.timed)})
+RATES = {"arm/state": 500.0, "arm/command": 500.0, "collision": 500.0, "planner/status": 20.0,
+         "viz/plan": 20.0, "planner/goal": 10.0, "task/events": 10.0, "arm/transforms": 25.0}
+
+
+def _recording(path: Path, skip: str = "") -> None:
+    """2 s of stack traffic under prefix ``pt``: arm states over 0-2 s, every other key over the
+    task, 0.5-1.5 s (commands included), at :data:`RATES` (30 Hz for the camera's and the
+    tracker's keys); the planner's status grows in size over the run."""
+    keys = Keys("pt")
+    with TraceWriter(path) as w:
+        for rel in WANTED:
+            if rel == skip:
+                continue
+            rate = RATES.get(rel, 30.0)
+            lo, hi = (0.0, 2.0) if rel == "arm/state" else (0.5, 1.5)
+            topic = keys.topic_for_key(f"pt/{rel}")
+            assert topic is not None and topic.msg_type is not None, rel
+            n = round((hi - lo) * rate)
+            for i in range(n + 1):
+                msg = topic.msg_type()
+                if rel == "planner/status":
+                    msg.detail = "x" * i  # sizes grow: the median is the middle one
+                w.write(f"pt/{rel}", msg, round((lo + i / rate) * 1e9))
+
+
+def test_the_profile_takes_each_rate_over_the_task_and_the_median_payload(tmp_path: Path) -> None:
+    _recording(tmp_path / "run.mcap")
+    prof = traffic_profile(tmp_path / "run.mcap")
+    assert prof["span_s"] == pytest.approx(1.0)
+    rates = {k: v["rate_hz"] for k, v in prof["keys"].items()}
+    assert set(rates) == set(WANTED)
+    assert rates["arm/state"] == pytest.approx(501.0)  # only the states within the task count
+    assert rates["planner/status"] == pytest.approx(21.0) and rates["vision/faces"] == pytest.approx(31.0)
+    from services.bus.messages import PlannerStatus
+
+    status = PlannerStatus.FromString(bytes.fromhex(prof["keys"]["planner/status"]["payload_hex"]))
+    assert len(status.detail) == 10
+    assert prof["keys"]["collision"]["encoding"] == "application/protobuf;psm.CollisionPrediction"
+
+
+def test_a_recording_without_a_key_is_refused_naming_it(tmp_path: Path) -> None:
+    _recording(tmp_path / "run.mcap", skip="viz/plan")
+    with pytest.raises(ValueError, match="no sample of viz/plan"):
+        traffic_profile(tmp_path / "run.mcap")
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(120)
+def test_a_null_stack_carries_the_recorded_traffic(tmp_path: Path) -> None:
+    _recording(tmp_path / "run.mcap")
+    prof = traffic_profile(tmp_path / "run.mcap")
+    res: dict[str, Any] = run_null_stack(prof, seconds=2.0, warmup_s=1.0, workdir=tmp_path / "null")
+    assert all(res["alive_during_window"].values()), res
+    assert not res["logs_tail"], res["logs_tail"]
+    assert set(res["cpu_pct"]) == {"router", *TRAFFIC} and res["total_pct"] > 0.0
+    c = res["counts"]
+    assert set(c) == set(TRAFFIC)
+    states = c["arm"]["published"]["arm/state"]
+    assert states >= 500.0 * 2.0  # 500 Hz over at least the warm-up and the window
+    # Answers: one command and one prediction per state received, a frame every n-th state (the
+    # services start one after the other, unsynchronised: the later ones miss the first states).
+    for role, out in (("planner", "arm/command"), ("obstacle_monitor", "collision")):
+        got = c[role]["received"]["arm/state"]
+        assert got >= 0.5 * states and c[role]["published"][out] == got, (role, c[role])
+    every = round(prof["keys"]["arm/state"]["rate_hz"] / prof["keys"]["camera/cam0/image"]["rate_hz"])
+    assert every == 16  # 501 / 31 Hz
+    assert c["camera"]["published"]["camera/cam0/image"] == c["camera"]["received"]["arm/state"] // every
+    frames = c["goal_tracker"]["received"]["camera/*/image"]
+    assert frames >= 0.9 * c["camera"]["published"]["camera/cam0/image"] > 0
+    assert c["goal_tracker"]["published"]["goals/person"] == frames
+    assert c["arm"]["received"]["arm/command"] >= 0.9 * c["planner"]["published"]["arm/command"]
+    # The recorder sees every key; the planner's timed status about 21 Hz over its run.
+    assert c["recorder"]["received"]["**"] > 3 * states
+    assert 10.0 * res["ran_s"] < c["planner"]["published"]["planner/status"] <= 21.5 * res["ran_s"]
