@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.host import host_info, host_line
 from services.bus.runtime import receive_thread_handler
 from services.supervisor import ManagedProcess, free_port, psm_argv
 
@@ -355,7 +356,8 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
             else f" (CPUs {res['timer_1khz']['cpu']['busy_pct']} % busy while only the idle "
             "timer reference ran: no other work on the machine; hypervisor steal is reported "
             "per run)."
-        ),
+        )
+        + (f" {host_line(res['host'])}." if res.get("host") else ""),
         "",
         "The closed loop runs on Zenoh's low-latency unicast transport (`--low-latency`, config "
         "`zenoh.low_latency`, on both processes: how the arm<->planner control link is meant to "
@@ -539,6 +541,7 @@ def _run(args: argparse.Namespace) -> int:
         "cpu_latency_us": args.cpu_latency_us,
         "machine": f"{platform.system()} {platform.machine()} Python {platform.python_version()}",
         "cpus": os.cpu_count(),
+        "host": host_info(),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
         "loadavg_start": _load(),
     }

@@ -47,6 +47,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from benchmarks.host import host_info, host_line
 from benchmarks.metrics import (
     discrete_frechet_distance,
     dtw_distance,
@@ -1108,6 +1109,7 @@ def write_markdown(report: dict[str, Any], path: Path) -> None:
         f"Python {meta['python']}, numpy {meta['numpy']}, movement_primitives "
         f"{meta['movement_primitives']}, {meta['cpu_count']} CPUs ({meta['machine']}). "
         "All errors in mm, times in the stated unit."
+        + (f" {host_line(meta['host'])}." if meta.get("host") else "")
     )
     L.append("")
     L.append("## Targets")
@@ -1649,6 +1651,7 @@ def run_benchmark(
             "movement_primitives": getattr(movement_primitives, "__version__", "?"),
             "machine": platform.machine(),
             "cpu_count": os.cpu_count(),
+            "host": host_info(),
             "wall_s": None,
         },
         "shapes": results,

@@ -89,6 +89,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.host import host_info, host_line
 from benchmarks.stack import zenoh_table
 from services.supervisor import ManagedProcess, cpu_seconds, free_port, psm_argv
 
@@ -914,8 +915,10 @@ def render_markdown(res: dict[str, Any]) -> str:
         f"start {res['load_avg_start']}, at end {res['load_avg_end']}; all CPUs "
         f"{res['machine_busy_pct_before']:.0f} % busy in the 2 s before the run, "
         f"{res['machine_busy_pct_during']:.0f} % during it, this benchmark included); python "
-        f"{res['python']}, zenoh {res['zenoh']}. Produced by `python -m benchmarks.planner"
-        f"{' --quick' if res['quick'] else ''}`; method in the module docstring.",
+        f"{res['python']}, zenoh {res['zenoh']}"
+        + (f"; {host_line(res['host'])}" if res.get("host") else "")
+        + f". Produced by `python -m benchmarks.planner{' --quick' if res['quick'] else ''}`; method in "
+        "the module docstring.",
         "",
         "## Targets",
         "",
@@ -1145,7 +1148,7 @@ def main(argv: list[str] | None = None) -> int:
     res: dict[str, Any] = {
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "machine": platform.machine(), "cpus": os.cpu_count(), "python": platform.python_version(),
-        "zenoh": version("eclipse-zenoh"), "quick": bool(args.quick),
+        "zenoh": version("eclipse-zenoh"), "quick": bool(args.quick), "host": host_info(),
         "load_avg_start": ", ".join(f"{x:.2f}" for x in os.getloadavg()),
         "machine_busy_pct_before": round(machine_busy_pct(2.0), 1),
     }

@@ -56,6 +56,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.arm import _load, bench_timer
+from benchmarks.host import host_info, host_line
 from services.stack import load_stack
 from services.supervisor import ManagedProcess, StackFailureError, Supervisor, cpu_seconds, free_port
 from services.threads import CpuLatencyRequest
@@ -476,7 +477,8 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
         "",
         f"{res['date']} · {res['machine']} · {res['cpus']} CPUs · {res['seconds']} s windows "
         f"after {res['warmup_s']} s warm-up · `python -m benchmarks.stack` (method: module "
-        "docstring). CPU = utime + stime from `/proc/<pid>/stat` over the window, % of one core.",
+        "docstring). CPU = utime + stime from `/proc/<pid>/stat` over the window, % of one core."
+        + (f" {host_line(res['host'])}." if res.get("host") else ""),
         "",
         "## The stack file's defaults (the targets are judged here)",
         "",
@@ -542,6 +544,7 @@ def main(argv: list[str] | None = None) -> int:
         "date": time.strftime("%Y-%m-%d %H:%M"),
         "machine": platform.machine(),
         "cpus": os.cpu_count(),
+        "host": host_info(),
         "python": platform.python_version(),
         "seconds": seconds,
         "warmup_s": args.warmup,
