@@ -7,7 +7,7 @@ with them. Each process of ``configs/stack.toml`` is replaced by a *null service
 session, liveliness token, ``ServiceStatus``) and the same bus topology (peers linked directly,
 the real ``psm serve router`` for discovery), which
 
-* subscribes to what the real process subscribes to (:data:`TRAFFIC`, after the access-control
+* subscribes to what the real process subscribes to (:func:`traffic`, after the access-control
   roles table :func:`services.bus.acl.roles`), each sample copied out of zenoh on its receive
   thread (:func:`services.bus.runtime.receive_thread_handler`) and dropped;
 * publishes what the real process publishes, with the topic's QoS (``Service.publisher``) and a
@@ -40,16 +40,18 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-#: Keys are relative to the cell's prefix.
-STATE = "arm/state"
-IMAGE = "camera/cam0/image"
+from services.bus.messages import Keys
+
+#: The stack's processes (``configs/stack.toml`` names, the access-control roles).
+PROCESSES = ("recorder", "arm", "camera", "goal_tracker", "obstacle_monitor", "planner")
 
 
 @dataclass(frozen=True)
 class Traffic:
-    """One process's bus traffic: the key expressions it subscribes to; the keys it publishes in
-    answer to an input (``answers``: output key → (input key expression, every n-th input; ``0``:
-    n from the two recorded rates)); the keys it publishes at their recorded rate (``timed``)."""
+    """One process's bus traffic, as key expressions of its cell: ``service``, the name of its
+    liveliness token and status; ``subscribes``, what it subscribes to; ``answers``, what it
+    publishes in answer to an input (output → (input, every n-th input; ``0``: n from the two
+    recorded rates)); ``timed``, what it publishes at the recorded rate."""
 
     service: str
     subscribes: tuple[str, ...]
@@ -57,73 +59,104 @@ class Traffic:
     timed: tuple[str, ...] = ()
 
 
-#: The stack's processes (``configs/stack.toml`` names) and their traffic; the subscriptions
-#: are those of :func:`services.bus.acl.roles`.
-TRAFFIC: dict[str, Traffic] = {
-    "recorder": Traffic("recorder", ("**",), {}),
-    "arm": Traffic("arm", ("arm/command",), {}, timed=(STATE, "arm/transforms")),
-    "camera": Traffic("camera_synth", (STATE,), {IMAGE: (STATE, 0)}),
-    "goal_tracker": Traffic(
-        "goal_tracker", ("camera/*/image", STATE),
-        {k: ("camera/*/image", 1) for k in ("goals/person", "vision/faces", "camera/cam0/annotations",
-                                            "viz/goals/person")},
-    ),
-    "obstacle_monitor": Traffic("obstacle_monitor", (STATE, "planner/goal", "obstacles/command"),
-                                {"collision": (STATE, 1)}),
-    "planner": Traffic("planner", (STATE, "goals/*", "collision"), {"arm/command": (STATE, 1)},
-                       timed=("planner/status", "viz/plan", "planner/goal", "task/events")),
-}
+def traffic(keys: Keys) -> dict[str, Traffic]:
+    """Each process's :class:`Traffic` in the cell ``keys``: its subscriptions and service name
+    from :func:`services.bus.acl.roles` (the recorder's history selectors left out: its
+    ``<prefix>/**`` covers them), its outputs from the services' code."""
+    from services.bus.acl import roles
+
+    table = roles(keys)
+    k = keys
+
+    def subs(role: str) -> tuple[str, ...]:
+        topics = table[role].subscribes
+        return (k.all.key,) if k.all in topics else tuple(t.key for t in topics)
+
+    state, images = k.arm_state.key, k.camera_images_all.key
+    outputs: dict[str, tuple[dict[str, tuple[str, int]], tuple[str, ...]]] = {
+        "recorder": ({}, ()),
+        "arm": ({}, (state, k.arm_transforms.key)),
+        "camera": ({images: (state, 0)}, ()),
+        "goal_tracker": ({t.key: (images, 1) for t in (k.goals_all, k.vision_faces, k.camera_annotations_all,
+                                                        k.viz_goals_all)}, ()),
+        "obstacle_monitor": ({k.collision.key: (state, 1)}, ()),
+        "planner": ({k.arm_command.key: (state, 1)},
+                    tuple(t.key for t in (k.planner_status, k.viz_plan, k.planner_goal, k.task_events))),
+    }
+    return {role: Traffic(table[role].services[0], subs(role), answers, timed)
+            for role, (answers, timed) in outputs.items()}
+
+
+def _matches(expr: str, key: str) -> bool:
+    """Whether the concrete ``key`` lies in the key expression ``expr``."""
+    import zenoh
+
+    return bool(zenoh.KeyExpr(expr).intersects(zenoh.KeyExpr(key)))
+
+
+def _outputs(t: Traffic) -> tuple[str, ...]:
+    return (*t.answers, *t.timed)
 
 
 def traffic_profile(recording: Path) -> dict[str, Any]:
-    """``{"span_s", "keys": {key: {"encoding", "rate_hz", "payload_hex"}}}`` of the keys
-    :data:`TRAFFIC` names, from a recording of the stack (keys relative to its prefix). Rates
-    are counts over the span of the planner's commands (the task: every process active)."""
+    """``{"span_s", "keys": {key: {"encoding", "rate_hz", "payload_hex"}}}``: every key a
+    recording of the stack holds that some process of :func:`traffic` publishes, the keys
+    relative to the cell's prefix (read from the commands' key). Rates are counts over the span
+    of the planner's commands (the task: every process active); the payload is the sample of
+    median size."""
     from services.bus.log import read_samples
 
-    wanted = {k for t in TRAFFIC.values() for k in (*t.answers, *t.timed)}
-    times: dict[str, list[int]] = {k: [] for k in wanted}
-    payloads: dict[str, list[bytes]] = {k: [] for k in wanted}
+    times: dict[str, list[int]] = {}
+    payloads: dict[str, list[bytes]] = {}
     encoding: dict[str, str] = {}
     for s in read_samples(recording, quiet=True):
-        rel = s.topic.split("/", 1)[1] if "/" in s.topic else s.topic
-        if rel in wanted:
-            times[rel].append(s.log_time_ns)
-            payloads[rel].append(s.payload)
-            encoding[rel] = s.encoding
-    missing = sorted(wanted - set(encoding))
+        times.setdefault(s.topic, []).append(s.log_time_ns)
+        payloads.setdefault(s.topic, []).append(s.payload)
+        encoding[s.topic] = s.encoding
+    command = Keys("cell").arm_command.key[len("cell"):]  # "/arm/command"
+    prefix = next((key[: -len(command)] for key in times if key.endswith(command)), None)
+    if prefix is None:
+        raise ValueError(f"{recording}: no command stream to take the rates over")
+    table = traffic(Keys(prefix))
+    exprs = [e for t in table.values() for e in _outputs(t)]
+    wanted = {key for key in times if any(_matches(e, key) for e in exprs)}
+    missing = sorted(e for e in exprs if not any(_matches(e, key) for key in wanted))
     if missing:
         raise ValueError(f"{recording}: no sample of {', '.join(missing)}")
-    t0, t1 = times["arm/command"][0], times["arm/command"][-1]
+    t_cmd = times[prefix + command]
+    t0, t1 = t_cmd[0], t_cmd[-1]
     if t1 <= t0:
         raise ValueError(f"{recording}: no command stream to take the rates over")
     span_s = (t1 - t0) * 1e-9
-    rate = {k: sum(1 for t in v if t0 <= t <= t1) / span_s for k, v in times.items()}
-    median = {k: sorted(v, key=len)[len(v) // 2] for k, v in payloads.items()}
-    return {"span_s": span_s, "keys": {
-        k: {"encoding": encoding[k], "rate_hz": rate[k], "payload_hex": median[k].hex()}
-        for k in sorted(encoding)
-    }}
+    keys = {}
+    for key in sorted(wanted):
+        median = sorted(payloads[key], key=len)[len(payloads[key]) // 2]
+        keys[key[len(prefix) + 1 :]] = {
+            "encoding": encoding[key],
+            "rate_hz": sum(1 for t in times[key] if t0 <= t <= t1) / span_s,
+            "payload_hex": median.hex(),
+        }
+    return {"span_s": span_s, "keys": keys}
 
 
 def null_service_main(argv: list[str]) -> int:
-    """One null service (``--role`` a key of :data:`TRAFFIC`, ``--profile`` a
+    """One null service (``--role`` one of :data:`PROCESSES`, ``--profile`` a
     :func:`traffic_profile` JSON file; the bus flags of any service). Runs until SIGTERM."""
     from services.bus.config import ServiceConfig, add_config_arguments, config_from_args
     from services.bus.runtime import Service, ServiceApp, receive_thread_handler, run_service
 
     ap = argparse.ArgumentParser()
-    ap.add_argument("--role", choices=sorted(TRAFFIC), required=True)
+    ap.add_argument("--role", choices=PROCESSES, required=True)
     ap.add_argument("--profile", type=Path, required=True)
     ap.add_argument("--counts", type=Path, required=True, help="JSON file of the counts, at exit")
     add_config_arguments(ap)
     args = ap.parse_args(argv)
     cfg = config_from_args(ServiceConfig, args)
-    traffic = TRAFFIC[args.role]
-    keys = json.loads(args.profile.read_text())["keys"]
+    profile = json.loads(args.profile.read_text())["keys"]
+    service_name = traffic(Keys(cfg.prefix))[args.role].service
 
     class NullService(ServiceApp):
-        name = traffic.service
+        name = service_name
 
         def __init__(self, config: ServiceConfig) -> None:
             super().__init__(config)
@@ -132,28 +165,32 @@ def null_service_main(argv: list[str]) -> int:
 
         def setup(self, svc: Service) -> None:
             prefix = svc.keys.prefix
+            mine = traffic(svc.keys)[args.role]
 
-            def publisher(rel: str) -> tuple[Any, bytes]:
-                key = f"{prefix}/{rel}"
+            def recorded(expr: str) -> list[str]:
+                """The recorded keys in ``expr``, absolute."""
+                return [f"{prefix}/{rel}" for rel in profile if _matches(expr, f"{prefix}/{rel}")]
+
+            def publisher(key: str) -> tuple[Any, bytes, float, list[int]]:
                 topic = svc.keys.topic_for_key(key)
                 if topic is None:
                     raise SystemExit(f"null service: {key} is not a catalogue key")
-                return svc.publisher(topic, key), bytes.fromhex(keys[rel]["payload_hex"])
+                rel = profile[key[len(prefix) + 1 :]]
+                return (svc.publisher(topic, key), bytes.fromhex(rel["payload_hex"]), rel["rate_hz"],
+                        self.published.setdefault(key[len(prefix) + 1 :], [0]))
 
-            by_input: dict[str, list[tuple[Any, bytes, int]]] = {}
-            for out, (inp, every) in traffic.answers.items():
-                if every == 0:
-                    in_rate = keys[STATE]["rate_hz"] if inp == STATE else 0.0
-                    every = max(1, round(in_rate / keys[out]["rate_hz"])) if in_rate else 1
-                pub, payload = publisher(out)
-                sent = self.published.setdefault(out, [0])
-                by_input.setdefault(inp, []).append((pub, payload, every, sent))
-            self.timed = [(*publisher(rel), keys[rel]["rate_hz"], self.published.setdefault(rel, [0]))
-                          for rel in traffic.timed]
-            for inp in traffic.subscribes:
-                handler = self._handler(by_input.get(inp, []), self.received.setdefault(inp, [0]))
-                svc.on_close(svc.session.declare_subscriber(
-                    f"{prefix}/{inp}", receive_thread_handler(handler)).undeclare)
+            state_rate = profile[svc.keys.arm_state.key[len(prefix) + 1 :]]["rate_hz"]
+            by_input: dict[str, list[tuple[Any, bytes, int, list[int]]]] = {}
+            for out, (inp, every) in mine.answers.items():
+                for key in recorded(out):
+                    pub, payload, rate, sent = publisher(key)
+                    n = every or max(1, round(state_rate / rate))
+                    by_input.setdefault(inp, []).append((pub, payload, n, sent))
+            self.timed = [publisher(key) for expr in mine.timed for key in recorded(expr)]
+            for inp in mine.subscribes:
+                rel = inp[len(prefix) + 1 :]
+                handler = self._handler(by_input.get(inp, []), self.received.setdefault(rel, [0]))
+                svc.on_close(svc.session.declare_subscriber(inp, receive_thread_handler(handler)).undeclare)
 
         @staticmethod
         def _handler(outs: list[tuple[Any, bytes, int, list[int]]], n: list[int]) -> Any:
@@ -193,7 +230,7 @@ def null_service_main(argv: list[str]) -> int:
 
 def run_null_stack(profile: Mapping[str, Any], *, seconds: float, warmup_s: float,
                    workdir: Path) -> dict[str, Any]:
-    """Start the real router and one null service per process of :data:`TRAFFIC` (the stack's
+    """Start the real router and one null service per process of :data:`PROCESSES` (the stack's
     start order) on a fresh loopback port, wait ``warmup_s``, measure each process's CPU over
     ``seconds`` (``/proc/<pid>/stat``, % of one core), stop them. Returns ``{"window_s",
     "cpu_pct", "total_pct", "alive_during_window", "counts", "ran_s", "logs_tail"}``; ``counts``:
@@ -216,7 +253,7 @@ def run_null_stack(profile: Mapping[str, Any], *, seconds: float, warmup_s: floa
         sup.start()
         procs["router"] = sup.rows[0].proc
         bus = [*bus_flags(endpoint), "--log-level", "WARNING"]
-        for role in TRAFFIC:
+        for role in PROCESSES:
             procs[role] = ManagedProcess(
                 role, [sys.executable, "-m", "benchmarks.null_stack", "--role", role, "--profile",
                        str(workdir / "profile.json"), "--counts", str(workdir / f"null_{role}.json"),
@@ -237,9 +274,9 @@ def run_null_stack(profile: Mapping[str, Any], *, seconds: float, warmup_s: floa
     ran_s = time.monotonic() - t_start
     cpu = {n: round(100.0 * (after[n] - before[n]) / window, 1) for n in procs}
     logs = {n: (workdir / f"null_{n}.log").read_text(errors="replace")[-2000:]
-            for n in TRAFFIC if (workdir / f"null_{n}.log").exists()}
+            for n in PROCESSES if (workdir / f"null_{n}.log").exists()}
     counts = {n: json.loads((workdir / f"null_{n}.json").read_text())
-              for n in TRAFFIC if (workdir / f"null_{n}.json").exists()}
+              for n in PROCESSES if (workdir / f"null_{n}.json").exists()}
     return {
         "window_s": round(window, 2),
         "cpu_pct": cpu,

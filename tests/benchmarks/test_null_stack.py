@@ -10,11 +10,13 @@ from typing import Any
 
 import pytest
 
-from benchmarks.null_stack import TRAFFIC, run_null_stack, traffic_profile
+from benchmarks.null_stack import PROCESSES, run_null_stack, traffic, traffic_profile
 from experiments.harness import TraceWriter
 from services.bus.messages import Keys
 
-WANTED = sorted({k for t in TRAFFIC.values() for k in (*t.answers, *t.timed)})
+#: The keys the stack's processes publish (the camera's and the tracker's under their names).
+WANTED = sorted({e[3:].replace("camera/*", "camera/cam0").replace("/*", "/person")
+                 for t in traffic(Keys("pt")).values() for e in (*t.answers, *t.timed)})
 RATES = {"arm/state": 500.0, "arm/command": 500.0, "collision": 500.0, "planner/status": 20.0,
          "viz/plan": 20.0, "planner/goal": 10.0, "task/events": 10.0, "arm/transforms": 25.0}
 
@@ -57,7 +59,7 @@ def test_the_profile_takes_each_rate_over_the_task_and_the_median_payload(tmp_pa
 
 def test_a_recording_without_a_key_is_refused_naming_it(tmp_path: Path) -> None:
     _recording(tmp_path / "run.mcap", skip="viz/plan")
-    with pytest.raises(ValueError, match="no sample of viz/plan"):
+    with pytest.raises(ValueError, match="no sample of pt/viz/plan"):
         traffic_profile(tmp_path / "run.mcap")
 
 
@@ -69,9 +71,9 @@ def test_a_null_stack_carries_the_recorded_traffic(tmp_path: Path) -> None:
     res: dict[str, Any] = run_null_stack(prof, seconds=2.0, warmup_s=1.0, workdir=tmp_path / "null")
     assert all(res["alive_during_window"].values()), res
     assert not res["logs_tail"], res["logs_tail"]
-    assert set(res["cpu_pct"]) == {"router", *TRAFFIC} and res["total_pct"] > 0.0
+    assert set(res["cpu_pct"]) == {"router", *PROCESSES} and res["total_pct"] > 0.0
     c = res["counts"]
-    assert set(c) == set(TRAFFIC)
+    assert set(c) == set(PROCESSES)
     states = c["arm"]["published"]["arm/state"]
     assert states >= 500.0 * 2.0  # 500 Hz over at least the warm-up and the window
     # Answers: one command and one prediction per state received, a frame every n-th state (the
