@@ -197,14 +197,12 @@ class RecordedRun:
     ``cmd_tick (M,)``, ``a_cmd (M, 3)`` [m/s²], ``quat_ref (M, 4)``, ``omega_cmd (M, 3)`` [rad/s];
     the predictions ``pred_tick (P,)``, ``collision (P,)``, ``protective_stop (P,)``,
     ``min_clearance (P,)`` [m]; ``goals``: every ``goals/*`` message as ``(name, position,
-    stamp_ns, valid)``; ``planner_goals``: every ``planner/goal`` as ``(stamp_ns, name,
-    position)``; ``goal_updates``: the goal updates the planner's commands name
+    stamp_ns, valid)``; ``goal_updates``: the goal updates the planner's commands name
     (``ArmCommand.goal_updates``) as ``(tick, name, stamp_ns)``, in order; ``events``: the task
     events as ``(kind, step, state_tick)``."""
 
     arrays: dict[str, NDArray[Any]]
     goals: list[tuple[str, tuple[float, float, float], int, bool]] = field(default_factory=list)
-    planner_goals: list[tuple[int, str, tuple[float, float, float]]] = field(default_factory=list)
     goal_updates: list[tuple[int, str, int]] = field(default_factory=list)
     events: list[tuple[str, str, int]] = field(default_factory=list)
 
@@ -219,8 +217,7 @@ def read_stack_run(path: Path) -> RecordedRun:
     cmds: dict[int, Any] = {}
     preds: dict[int, Any] = {}
     out = RecordedRun({})
-    topics = [f"*/{t}" for t in ("arm/state", "arm/command", "collision", "goals/*", "planner/goal",
-                                 "task/events")]
+    topics = [f"*/{t}" for t in ("arm/state", "arm/command", "collision", "goals/*", "task/events")]
     for key, msg, _t in read_log(path, topics):
         topic = key.split("/", 1)[1]
         if isinstance(msg, ArmState) and topic == "arm/state":
@@ -233,9 +230,6 @@ def read_stack_run(path: Path) -> RecordedRun:
             p = msg.position
             out.goals.append((msg.name or topic.split("/", 1)[1], (p.x, p.y, p.z), int(msg.stamp_ns),
                               bool(msg.valid)))
-        elif isinstance(msg, Goal) and topic == "planner/goal":
-            p = msg.position
-            out.planner_goals.append((int(msg.stamp_ns), msg.name, (p.x, p.y, p.z)))
         elif isinstance(msg, TaskEvent):
             out.events.append((TaskEvent.Kind.Name(msg.kind), msg.step, int(msg.state_tick)))
 
