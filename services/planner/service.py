@@ -104,6 +104,9 @@ from services.threads import limit_blas_threads
 SERVICE_NAME = "planner"
 
 _LAT_RING = 4096  # latency samples kept between two status messages (at most ~8 s at 500 Hz)
+#: Goal updates a command names at most (``ArmCommand.goal_updates``): ~34 s of a 30 Hz goal
+#: without an arm state to answer; older ones are then left out of the command.
+GOAL_UPDATES_MAX = 1024
 
 _STATES = {
     "IDLE": PlannerStatus.IDLE,
@@ -195,8 +198,9 @@ class PlannerService(ServiceApp):
         self._last_tick = -1
         self._last_stamp = 0
         self._last_reply = b""
-        #: The goal updates offered to the runner since the last command: ``(name, stamp_ns)``.
-        self._goal_updates: list[tuple[str, int]] = []
+        #: The goal updates offered to the runner since the last command: ``(name, stamp_ns)``;
+        #: with no state to answer for a long time only the latest are kept for the next command.
+        self._goal_updates: deque[tuple[str, int]] = deque(maxlen=GOAL_UPDATES_MAX)
         self._stream = StateStream(
             sec.max_tick_gap, round(sec.stamp_tolerance_s * 1e9), sec.resync_after
         )

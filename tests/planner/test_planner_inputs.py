@@ -381,6 +381,20 @@ def test_the_first_command_after_goal_updates_names_them_in_the_order_applied() 
     assert p.runner.goals.rejected == 2
 
 
+def test_with_no_state_to_answer_a_command_names_only_the_latest_goal_updates() -> None:
+    from services.planner.service import GOAL_UPDATES_MAX
+
+    p, _fake, cmd, _goal = _wired_planner("realtime")
+    p._goals_prefix = "psm/goals/"
+    n = GOAL_UPDATES_MAX + 100
+    for i in range(n):  # the arm gone for a while, the tracker still publishing
+        p._on_goal(Goal(name="person", stamp_ns=i + 1, valid=True, frame_id="base",
+                        position=Vec3(x=0.35, y=0.5, z=0.45)), "psm/goals/person")
+    p._on_state(_Sample(_state(0)))
+    stamps = [u.stamp_ns for u in ArmCommand.FromString(cmd.sent[0]).goal_updates]
+    assert stamps == list(range(n - GOAL_UPDATES_MAX + 1, n + 1))
+
+
 # ---------------------------------------------------------------------------- live goal sync
 FRAME_NS = 1e9 / 30  # the synthetic camera's frame period at its default 30 fps
 
