@@ -162,6 +162,7 @@ def null_service_main(argv: list[str]) -> int:
             super().__init__(config)
             self.received: dict[str, list[int]] = {}  # input key expression -> [count]
             self.published: dict[str, list[int]] = {}  # output key -> [count]
+            self.loop_t0: float | None = None  # time.monotonic() at the loop's start [s]
 
         def setup(self, svc: Service) -> None:
             prefix = svc.keys.prefix
@@ -205,10 +206,11 @@ def null_service_main(argv: list[str]) -> int:
             return on_sample
 
         def loop(self, svc: Service) -> None:
+            self.loop_t0 = time.monotonic()
             if not self.timed:
                 svc.stop_event.wait()
                 return
-            t0 = time.monotonic()
+            t0 = self.loop_t0
             while not svc.stop_event.is_set():
                 due = [t0 + (sent[0] + 1) / rate for _p, _b, rate, sent in self.timed]
                 i = min(range(len(due)), key=due.__getitem__)
@@ -220,7 +222,9 @@ def null_service_main(argv: list[str]) -> int:
                 sent[0] += 1
 
         def teardown(self, svc: Service) -> None:
+            loop_s = 0.0 if self.loop_t0 is None else time.monotonic() - self.loop_t0
             args.counts.write_text(json.dumps({
+                "loop_s": round(loop_s, 3),
                 "received": {k: v[0] for k, v in self.received.items()},
                 "published": {k: v[0] for k, v in self.published.items()},
             }))
@@ -230,12 +234,15 @@ def null_service_main(argv: list[str]) -> int:
 
 def run_null_stack(profile: Mapping[str, Any], *, seconds: float, warmup_s: float,
                    workdir: Path) -> dict[str, Any]:
-    """Start the real router and one null service per process of :data:`PROCESSES` (the stack's
-    start order) on a fresh loopback port, wait ``warmup_s``, measure each process's CPU over
-    ``seconds`` (``/proc/<pid>/stat``, % of one core), stop them. Returns ``{"window_s",
-    "cpu_pct", "total_pct", "alive_during_window", "counts", "ran_s", "logs_tail"}``; ``counts``:
-    per null service the samples it received per subscription and published per key over its
-    whole run (about ``ran_s``, warm-up and start-up included)."""
+    """Start the real router and one null service per process of :data:`PROCESSES` on a fresh
+    loopback port, in the stack's start order and each after the previous one is alive; from the
+    last one alive, wait ``warmup_s``, measure each process's CPU over ``seconds``
+    (``/proc/<pid>/stat``, % of one core), stop them in reverse order. Returns ``{"window_s",
+    "cpu_pct", "total_pct", "alive_during_window", "counts", "ran_s", "logs_tail"}``: ``ran_s``
+    [s] from the last one alive to the start of the stop (all of them alive); ``counts``, per
+    null service, the samples it received per subscription and published per key over its whole
+    run (start-up included) and ``loop_s`` [s], how long its loop ran (the timed keys' rates hold
+    over that time)."""
     from benchmarks.stack import bus_flags, stack_header
     from services.stack import load_stack
     from services.supervisor import ManagedProcess, Supervisor, cpu_seconds, free_port
@@ -253,11 +260,13 @@ def run_null_stack(profile: Mapping[str, Any], *, seconds: float, warmup_s: floa
         sup.start()
         procs["router"] = sup.rows[0].proc
         bus = [*bus_flags(endpoint), "--log-level", "WARNING"]
-        for role in PROCESSES:
+        names = traffic(Keys(sup.cfg.prefix))
+        for role in PROCESSES:  # each one after the previous is alive, as the supervisor starts a stack
             procs[role] = ManagedProcess(
                 role, [sys.executable, "-m", "benchmarks.null_stack", "--role", role, "--profile",
                        str(workdir / "profile.json"), "--counts", str(workdir / f"null_{role}.json"),
                        *bus], workdir / f"null_{role}.log")
+            sup.wait_alive(names[role].service, procs[role])
         t_start = time.monotonic()
         time.sleep(warmup_s)
         before = {n: cpu_seconds(p.pid) or 0.0 for n, p in procs.items()}
@@ -266,12 +275,12 @@ def run_null_stack(profile: Mapping[str, Any], *, seconds: float, warmup_s: floa
         window = time.monotonic() - t0
         after = {n: cpu_seconds(p.pid) or 0.0 for n, p in procs.items()}
         alive = {n: p.poll() is None for n, p in procs.items()}
+        ran_s = time.monotonic() - t_start
     finally:
         for name, proc in reversed(procs.items()):
             if name != "router":
                 proc.stop(15)
         sup.shutdown()
-    ran_s = time.monotonic() - t_start
     cpu = {n: round(100.0 * (after[n] - before[n]) / window, 1) for n in procs}
     logs = {n: (workdir / f"null_{n}.log").read_text(errors="replace")[-2000:]
             for n in PROCESSES if (workdir / f"null_{n}.log").exists()}

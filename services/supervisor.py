@@ -432,6 +432,25 @@ class Supervisor:
             self._died(row, f"did not declare its liveliness token '{row.service}' within {timeout:g} s")
         )
 
+    def wait_alive(self, service: str, proc: ManagedProcess) -> None:
+        """Wait until ``service`` has declared its liveliness token on the stack's prefix, for a
+        process started outside the stack file (a benchmark's own); the stack's
+        ``startup_timeout_s`` bounds the wait. Raises :class:`StackFailureError` with the tail of
+        ``proc``'s log if it exits first or the time runs out."""
+        timeout = self.cfg.stack.startup_timeout_s
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.session is not None:
+                with self._lock:
+                    if service in self._alive:
+                        return
+            if not proc.alive():
+                raise StackFailureError(f"{proc.name} exited during start-up; last lines of "
+                                        f"{proc.log_path}:\n{proc.log_tail()}")
+            time.sleep(0.02)
+        raise StackFailureError(f"{proc.name} did not declare its liveliness token '{service}' within "
+                                f"{timeout:g} s; last lines of {proc.log_path}:\n{proc.log_tail()}")
+
     def _died(self, row: _Row, what: str) -> str:
         rc = row.proc.returncode
         code = "" if rc is None else f" (exit code {rc})"

@@ -253,3 +253,47 @@ def test_a_cpu_the_machine_does_not_have_is_one_error_line_before_anything_start
     assert rc == 1, log
     assert "psm up: error: stack.processes[1].cpu_affinity: CPU 4095 is not available here" in log, log
     assert not _child_pids(log), log
+
+
+def test_wait_alive_names_a_process_that_exits_or_never_declares_its_token(tmp_path: Path) -> None:
+    import io
+
+    from services.stack import load_stack
+    from services.supervisor import StackFailureError, Supervisor
+
+    port = free_port()
+    stack = tmp_path / "router.toml"
+    stack.write_text(f"""prefix = "psmtest{port}"
+[zenoh]
+mode = "client"
+connect = ["tcp/127.0.0.1:{port}"]
+multicast = false
+[stack]
+name = "test"
+startup_timeout_s = 1.5
+run_dir = "{tmp_path / 'run'}"
+[[stack.processes]]
+name = "router"
+command = ["serve", "router"]
+[router]
+listen = ["tcp/127.0.0.1:{port}"]
+""")
+    sup = Supervisor(load_stack(stack), out=io.StringIO(), live=False)
+    quitter = sleeper = None
+    try:
+        sup.start()
+        quitter = ManagedProcess("quitter", [sys.executable, "-c", "print('no token'); raise SystemExit(3)"],
+                                 tmp_path / "quitter.log")
+        with pytest.raises(StackFailureError, match=r"quitter exited during start-up[^\n]*\n.*no token"):
+            sup.wait_alive("quitter", quitter)
+        sleeper = ManagedProcess("sleeper", [sys.executable, "-c", "import time; time.sleep(30)"],
+                                 tmp_path / "sleeper.log")
+        t0 = time.monotonic()
+        with pytest.raises(StackFailureError, match="sleeper did not declare its liveliness token 'nap'"):
+            sup.wait_alive("nap", sleeper)
+        assert time.monotonic() - t0 < 5.0
+    finally:
+        for p in (quitter, sleeper):
+            if p is not None:
+                p.stop(5)
+        sup.shutdown()

@@ -75,19 +75,28 @@ def test_a_null_stack_carries_the_recorded_traffic(tmp_path: Path) -> None:
     c = res["counts"]
     assert set(c) == set(PROCESSES)
     states = c["arm"]["published"]["arm/state"]
-    assert states >= 500.0 * 2.0  # 500 Hz over at least the warm-up and the window
-    # Answers: one command and one prediction per state received, a frame every n-th state (the
-    # services start one after the other, unsynchronised: the later ones miss the first states).
+    state_hz = prof["keys"]["arm/state"]["rate_hz"]
+    assert states >= 0.9 * state_hz * res["ran_s"]
+    # Answers: one command and one prediction per state received, a frame every n-th state (a
+    # sample being answered when the counts are written at shutdown is counted as received only).
+    # Every service is alive before the window and the stop starts with the last one started.
     for role, out in (("planner", "arm/command"), ("obstacle_monitor", "collision")):
         got = c[role]["received"]["arm/state"]
-        assert got >= 0.5 * states and c[role]["published"][out] == got, (role, c[role])
-    every = round(prof["keys"]["arm/state"]["rate_hz"] / prof["keys"]["camera/cam0/image"]["rate_hz"])
+        assert got >= 0.9 * state_hz * res["ran_s"], (role, c[role])
+        assert got - 1 <= c[role]["published"][out] <= got, (role, c[role])
+    every = round(state_hz / prof["keys"]["camera/cam0/image"]["rate_hz"])
     assert every == 16  # 501 / 31 Hz
-    assert c["camera"]["published"]["camera/cam0/image"] == c["camera"]["received"]["arm/state"] // every
+    images = c["camera"]["published"]["camera/cam0/image"]
+    assert 0 <= c["camera"]["received"]["arm/state"] // every - images <= 1
     frames = c["goal_tracker"]["received"]["camera/*/image"]
-    assert frames >= 0.9 * c["camera"]["published"]["camera/cam0/image"] > 0
-    assert c["goal_tracker"]["published"]["goals/person"] == frames
+    assert frames >= 0.9 * state_hz / every * res["ran_s"]
+    assert frames - 1 <= c["goal_tracker"]["published"]["goals/person"] <= frames
     assert c["arm"]["received"]["arm/command"] >= 0.9 * c["planner"]["published"]["arm/command"]
-    # The recorder sees every key; the planner's timed status about 21 Hz over its run.
-    assert c["recorder"]["received"]["**"] > 3 * states
-    assert 10.0 * res["ran_s"] < c["planner"]["published"]["planner/status"] <= 21.5 * res["ran_s"]
+    # The recorder, alive first and stopped last, sees every sample the others publish; the
+    # planner's timed status goes out at its recorded rate (about 21 Hz) over the time its loop ran.
+    published = sum(n for role in PROCESSES if role != "recorder" for n in c[role]["published"].values())
+    assert c["recorder"]["received"]["**"] >= 0.99 * published
+    status_hz = prof["keys"]["planner/status"]["rate_hz"]
+    loop_s = c["planner"]["loop_s"]
+    assert loop_s > res["ran_s"]
+    assert 0.8 * status_hz * loop_s <= c["planner"]["published"]["planner/status"] <= status_hz * loop_s + 1
