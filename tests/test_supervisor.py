@@ -21,12 +21,9 @@ pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _stack(tmp_path: Path, extra: str = "", arm: str = "", procs: dict[str, str] | None = None) -> Path:
-    """A lockstep stack of router, recorder and arm; ``procs``: more lines of a process's
-    ``[[stack.processes]]`` entry by its name (e.g. a restart policy)."""
-    more = procs or {}
-    port = free_port()
-    text = f"""
+def _header(port: int, tmp_path: Path, startup_timeout_s: float = 40.0) -> str:
+    """The bus settings and ``[stack]`` table of a lockstep test stack on ``port``."""
+    return f"""
 prefix = "psmtest{port}"
 clock = "lockstep"
 log_level = "INFO"
@@ -37,10 +34,18 @@ connect = ["tcp/127.0.0.1:{port}"]
 multicast = false
 [stack]
 name = "test"
-startup_timeout_s = 40.0
+startup_timeout_s = {startup_timeout_s}
 stop_timeout_s = 10.0
 run_dir = "{tmp_path / 'run'}"
-[[stack.processes]]
+"""
+
+
+def _stack(tmp_path: Path, extra: str = "", arm: str = "", procs: dict[str, str] | None = None) -> Path:
+    """A lockstep stack of router, recorder and arm; ``procs``: more lines of a process's
+    ``[[stack.processes]]`` entry by its name (e.g. a restart policy)."""
+    more = procs or {}
+    port = free_port()
+    text = _header(port, tmp_path) + f"""[[stack.processes]]
 name = "router"
 command = ["serve", "router"]
 {more.get("router", "")}
@@ -263,16 +268,7 @@ def test_wait_alive_names_a_process_that_exits_or_never_declares_its_token(tmp_p
 
     port = free_port()
     stack = tmp_path / "router.toml"
-    stack.write_text(f"""prefix = "psmtest{port}"
-[zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:{port}"]
-multicast = false
-[stack]
-name = "test"
-startup_timeout_s = 1.5
-run_dir = "{tmp_path / 'run'}"
-[[stack.processes]]
+    stack.write_text(_header(port, tmp_path, startup_timeout_s=1.5) + f"""[[stack.processes]]
 name = "router"
 command = ["serve", "router"]
 [router]
