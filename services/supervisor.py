@@ -408,11 +408,24 @@ class Supervisor:
         host = "127.0.0.1" if host in ("0.0.0.0", "[::]", "") else host.strip("[]")
         return host, int(port)
 
-    def _wait_ready(self, row: _Row) -> None:
-        timeout = self.cfg.stack.startup_timeout_s
-        deadline = time.monotonic() + timeout
-        endpoint = self._router_endpoint(row.name) if self.session is None else None
+    def _until_alive(self, service: str, poll: Callable[[], None]) -> bool:
+        """Whether ``service`` declares its liveliness token within the stack's
+        ``startup_timeout_s``; ``poll`` runs every 20 ms while it has not (it raises
+        :class:`StackFailureError` to give up: a process that died, a stop)."""
+        deadline = time.monotonic() + self.cfg.stack.startup_timeout_s
         while time.monotonic() < deadline:
+            poll()
+            if self.session is not None:
+                with self._lock:
+                    if service in self._alive:
+                        return True
+            time.sleep(0.02)
+        return False
+
+    def _wait_ready(self, row: _Row) -> None:
+        endpoint = self._router_endpoint(row.name) if self.session is None else None
+
+        def poll() -> None:
             for other in self.rows:
                 if not other.gone and not other.proc.alive():
                     raise StackFailureError(self._died(other, "exited during start-up"))
@@ -423,33 +436,29 @@ class Supervisor:
                     s.settimeout(0.2)
                     if s.connect_ex(endpoint) == 0:
                         self._open_session()
-            if self.session is not None:
-                with self._lock:
-                    if row.service in self._alive:
-                        return
-            time.sleep(0.05)
-        raise StackFailureError(
-            self._died(row, f"did not declare its liveliness token '{row.service}' within {timeout:g} s")
-        )
+
+        if not self._until_alive(row.service, poll):
+            timeout = self.cfg.stack.startup_timeout_s
+            raise StackFailureError(
+                self._died(row, f"did not declare its liveliness token '{row.service}' within {timeout:g} s")
+            )
 
     def wait_alive(self, service: str, proc: ManagedProcess) -> None:
         """Wait until ``service`` has declared its liveliness token on the stack's prefix, for a
         process started outside the stack file (a benchmark's own); the stack's
         ``startup_timeout_s`` bounds the wait. Raises :class:`StackFailureError` with the tail of
         ``proc``'s log if it exits first or the time runs out."""
-        timeout = self.cfg.stack.startup_timeout_s
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.session is not None:
-                with self._lock:
-                    if service in self._alive:
-                        return
+
+        def poll() -> None:
             if not proc.alive():
                 raise StackFailureError(f"{proc.name} exited during start-up; last lines of "
                                         f"{proc.log_path}:\n{proc.log_tail()}")
-            time.sleep(0.02)
-        raise StackFailureError(f"{proc.name} did not declare its liveliness token '{service}' within "
-                                f"{timeout:g} s; last lines of {proc.log_path}:\n{proc.log_tail()}")
+
+        if not self._until_alive(service, poll):
+            timeout = self.cfg.stack.startup_timeout_s
+            raise StackFailureError(f"{proc.name} did not declare its liveliness token '{service}' "
+                                    f"within {timeout:g} s; last lines of {proc.log_path}:\n"
+                                    f"{proc.log_tail()}")
 
     def _died(self, row: _Row, what: str) -> str:
         rc = row.proc.returncode
