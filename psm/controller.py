@@ -211,6 +211,17 @@ class PSMController:
         return np.array(self._t_e)
 
     @property
+    def segment_tuple(self) -> tuple[int, ...]:
+        """:attr:`segment` as a tuple of ints (for a control loop that reads it every tick)."""
+        return tuple(self._segment)
+
+    @property
+    def time_to_go_tuple(self) -> tuple[float, ...]:
+        """:attr:`time_to_go` as a tuple of floats [s] (for a control loop that reads it every
+        tick)."""
+        return tuple(self._t_e)
+
+    @property
     def modes(self) -> list[str]:
         """Each dimension's mode in the last step (segment, wrong_way, collision_stop, terminal)."""
         return list(self._modes)

@@ -73,6 +73,21 @@ __all__ = [
 IDLE, RUNNING, HOLDING, DONE, FAULT = "IDLE", "RUNNING", "HOLDING", "DONE", "FAULT"
 
 
+def _read_only(a: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``a``, made read-only (an array shared between ticks that no caller may change)."""
+    a.flags.writeable = False
+    return a
+
+
+#: The velocity of a static goal (0, 0, 0) [m/s], shared and read-only.
+ZERO3 = _read_only(np.zeros(3))
+
+# The control step runs once per arm state on a loop whose caches are cold at every tick (the
+# arm's process runs between two states): there each numpy call on a 3-vector costs ~10 µs,
+# several times its cost in a warm loop, so the per-tick path works on plain floats
+# (``ndarray.tolist`` once per input) and builds arrays only for its outputs.
+
+
 @dataclass(frozen=True)
 class DemoFigures:
     """What a step's demonstration did, for the generalisation criteria: ``peak_speed`` [m/s],
@@ -178,7 +193,8 @@ class StepReport:
     hold_s: float = 0.0
     max_orientation_error_deg: float = 0.0
     start_dist: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
-    max_dist: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
+    #: Largest distance to the goal per axis so far [m] (plain floats: updated every tick).
+    max_dist: list[float] = field(default_factory=lambda: [0.0, 0.0, 0.0])
     goal: NDArray[np.float64] = field(default_factory=lambda: np.zeros(3))
     has_goal: bool = False
     follow_sq: float = 0.0  #: sum of squared distances to the goal once reached (dwell, follow)
@@ -191,7 +207,7 @@ class StepReport:
         """The step's goal became known with the arm at ``x (3,)`` [m] (distances start here)."""
         self.goal = np.array(goal, dtype=float)
         self.start_dist = np.abs(np.asarray(x, dtype=float) - self.goal)
-        self.max_dist = self.start_dist.copy()
+        self.max_dist = self.start_dist.tolist()
         self.has_goal = True
 
     def summary(self) -> dict[str, Any]:
@@ -275,6 +291,10 @@ class GoalBook:
         self.last_rejection = ""
         self.last_rejection_kind = ""  #: the reason of the last rejection: non_finite, workspace, stamp
         self._timeout_ns = int(task.goal_timeout_s * 1e9)
+        # resolve() runs every tick: the goal arrays it returns are built once per static goal
+        # and offset, and once per live update, and are read-only (shared between ticks).
+        self._static_goals: dict[tuple[str, tuple[float, ...]], NDArray[np.float64]] = {}
+        self._live_goals: dict[str, tuple[_LiveGoal, tuple[float, ...], NDArray[np.float64]]] = {}
 
     def update(
         self, name: str, position: Any, stamp_ns: int, valid: bool = True, reason: str = "",
@@ -317,17 +337,27 @@ class GoalBook:
         self, step: StepSpec, now_ns: int
     ) -> tuple[NDArray[np.float64] | None, NDArray[np.float64], str]:
         """``(goal (3,) or None, goal velocity (3,), why unavailable)`` for ``step`` at ``now_ns``."""
-        offset = np.asarray(step.offset_m, dtype=float)
+        offset = tuple(step.offset_m)
         if not step.live:
-            return self.static[step.goal] + offset, np.zeros(3), ""
+            key = (step.goal, offset)
+            goal = self._static_goals.get(key)
+            if goal is None:
+                goal = _read_only(self.static[step.goal] + np.asarray(offset, dtype=float))
+                self._static_goals[key] = goal
+            return goal, ZERO3, ""
         g = self.live.get(step.goal)
         if g is None:
-            return None, np.zeros(3), f"waiting for goal {step.goal}"
+            return None, ZERO3, f"waiting for goal {step.goal}"
         if not g.valid:
-            return None, np.zeros(3), f"goal {step.goal} lost: {g.reason}"
+            return None, ZERO3, f"goal {step.goal} lost: {g.reason}"
         if now_ns - g.stamp_ns > self._timeout_ns:
-            return None, np.zeros(3), f"goal {step.goal} stale ({(now_ns - g.stamp_ns) * 1e-9:.2f} s old)"
-        return g.position + offset, g.velocity, ""
+            return None, ZERO3, f"goal {step.goal} stale ({(now_ns - g.stamp_ns) * 1e-9:.2f} s old)"
+        cached = self._live_goals.get(step.goal)
+        if cached is not None and cached[0] is g and cached[1] == offset:
+            return cached[2], g.velocity, ""
+        goal = _read_only(g.position + np.asarray(offset, dtype=float))
+        self._live_goals[step.goal] = (g, offset, goal)
+        return goal, g.velocity, ""
 
 
 class TaskRunner:
@@ -380,7 +410,10 @@ class TaskRunner:
         self._ctrl: PSMController | None = None
         self._orient: OrientationTracker | None = None
         self._goal: NDArray[np.float64] | None = None
-        self._goal_velocity = np.zeros(3)
+        self._goal_l: list[float] = []  # self._goal as floats (the per-tick path)
+        self._xl: list[float] = []  # the state of the current step() as floats
+        self._vl: list[float] = []
+        self._goal_velocity = ZERO3
         self._event_goal: NDArray[np.float64] | None = None
         self._segments: tuple[int, ...] = ()
         self._phase = "idle"  # run | dwell | hold | neutral | done | fault
@@ -538,7 +571,9 @@ class TaskRunner:
             self._restart = False
             self.reports.pop()
             self._start_step(self.index, now_ns, x, quat)
-        speed = math.sqrt(float(v @ v))
+        xl, vl = _floats(x), _floats(v)
+        self._xl, self._vl = xl, vl
+        speed = math.sqrt(vl[0] * vl[0] + vl[1] * vl[1] + vl[2] * vl[2])
         self.speed = speed
         rep = self.reports[-1] if self.reports else None
         if self._phase in ("done", "fault"):
@@ -559,16 +594,20 @@ class TaskRunner:
         if self.feasibility is not None and joints is not None:
             self._scale_into_limits(out, rep, joints)
         if rep.outcome == "running":
-            rep.peak_speed_mps = max(rep.peak_speed_mps, speed)
+            if speed > rep.peak_speed_mps:
+                rep.peak_speed_mps = speed
             if measured_accel is not None:
-                rep.peak_accel_mps2 = max(
-                    rep.peak_accel_mps2, math.sqrt(float(measured_accel @ measured_accel))
-                )
-            a = out.acceleration
-            rep.peak_command_accel_mps2 = max(rep.peak_command_accel_mps2, math.sqrt(float(a @ a)))
+                m0, m1, m2 = _floats(measured_accel)
+                rep.peak_accel_mps2 = max(rep.peak_accel_mps2, math.sqrt(m0 * m0 + m1 * m1 + m2 * m2))
+            a0, a1, a2 = _floats(out.acceleration)
+            a_cmd = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+            rep.peak_command_accel_mps2 = max(rep.peak_command_accel_mps2, a_cmd)
             if self._goal is not None:
-                d = np.abs(x - self._goal)
-                np.maximum(rep.max_dist, d, out=rep.max_dist)
+                gl, md = self._goal_l, rep.max_dist
+                for i in range(3):
+                    d = abs(xl[i] - gl[i])
+                    if d > md[i]:
+                        md[i] = d
             err = _angle_deg(quat, out.orientation)
             if self._phase == "run" and err > rep.max_orientation_error_deg:
                 rep.max_orientation_error_deg = err
@@ -591,23 +630,25 @@ class TaskRunner:
             self._resume(spec, now_ns, x, quat)
         ctrl = self._ctrl
         assert ctrl is not None
-        if self._goal is None or not (goal == self._goal).all():
-            ctrl.set_goal(goal)
-            self._goal = goal
-            if (
-                self._event_goal is None
-                or float(np.linalg.norm(goal - self._event_goal)) >= self.task.goal_event_m
-            ):
-                self._event_goal = goal.copy()
-                self._event("GOAL_CHANGED", f"{spec.goal} at {np.round(goal, 3).tolist()}")
+        if goal is not self._goal:  # (resolve returns the same array while the goal is unchanged)
+            if self._goal is None or not (goal == self._goal).all():
+                ctrl.set_goal(goal)
+                if (
+                    self._event_goal is None
+                    or float(np.linalg.norm(goal - self._event_goal)) >= self.task.goal_event_m
+                ):
+                    self._event_goal = goal.copy()
+                    self._event("GOAL_CHANGED", f"{spec.goal} at {np.round(goal, 3).tolist()}")
+            self._set_goal(goal)
         self._goal_velocity = goal_vel
         # The via-points are relative to the goal, so the phase-space state is too: the controller
         # runs its law on the velocity relative to a moving goal's (zero for a static goal). With
         # the absolute velocity a via-point at rest, carried along by a goal moving steadily, is
         # never reached at rest: the dimension trails it and the motion stalls there. Its
         # collision stops, fixed in the world, brake the measured velocity.
-        acc = ctrl.step(x, v, dt, goal_vel)
-        seg = tuple(ctrl.segment.tolist())
+        static_goal = goal_vel is ZERO3
+        acc = ctrl.step(self._xl, self._vl, dt, None if static_goal else goal_vel)
+        seg = ctrl.segment_tuple
         if seg != self._segments:
             changed = [
                 f"{'xyz'[d]}:{a}->{b}"
@@ -618,10 +659,15 @@ class TaskRunner:
                 self._event("SEGMENT_CHANGED", " ".join(changed))
             self._segments = seg
         q, omega = self._orientation(ctrl)
-        err = goal - x
-        self.distance = math.sqrt(float(err @ err))
-        dv = v - goal_vel
-        rel_speed = math.sqrt(float(dv @ dv))
+        xl, vl, gl = self._xl, self._vl, self._goal_l
+        e0, e1, e2 = gl[0] - xl[0], gl[1] - xl[1], gl[2] - xl[2]
+        self.distance = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        if static_goal:
+            rel_speed = self.speed
+        else:
+            gv = _floats(goal_vel)
+            u0, u1, u2 = vl[0] - gv[0], vl[1] - gv[1], vl[2] - gv[2]
+            rel_speed = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
         reached = self.distance <= spec.position_tolerance_m and rel_speed <= spec.velocity_tolerance_mps
         if self._phase == "run" and reached:
             self._phase, self._phase_since_ns = "dwell", now_ns
@@ -647,7 +693,12 @@ class TaskRunner:
                 f"({self.distance:.3f} m from the goal)"
             )
             return self._hold(x, v, quat)
-        return PlannerOutput(np.asarray(acc, dtype=float), q, omega)
+        return PlannerOutput(acc, q, omega)
+
+    def _set_goal(self, goal: NDArray[np.float64] | None) -> None:
+        """The goal in use (None: not known yet), also as floats for the per-tick path."""
+        self._goal = goal
+        self._goal_l = [] if goal is None else goal.tolist()
 
     def _scale_into_limits(self, out: PlannerOutput, rep: StepReport, joints: Joints) -> None:
         """Scale the motion's command ``out`` into the joint acceleration limits (see
@@ -844,7 +895,7 @@ class TaskRunner:
         goal, _vel, _why = self.goals.resolve(spec, now_ns)
         self._ctrl = model.controller(goal if goal is not None else model.goal, **spec.controller)
         self._stops_set, self._blocked_by = False, ""
-        self._goal = goal
+        self._set_goal(goal)
         self._event_goal = None if goal is None else goal.copy()
         self._segments = ()
         profile = self.profiles.get(spec.name)
@@ -925,9 +976,8 @@ class TaskRunner:
     # ------------------------------------------------------------------ laws
     def _orientation(self, ctrl: PSMController) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         assert self._orient is not None
-        te = ctrl.time_to_go
-        ref = float(np.max(te)) if self._orient_dim < 0 else float(te[self._orient_dim])
-        return self._orient.update(ref)
+        te = ctrl.time_to_go_tuple
+        return self._orient.update(max(te) if self._orient_dim < 0 else te[self._orient_dim])
 
     def _tracking(
         self,
@@ -977,7 +1027,13 @@ class TaskRunner:
         return json.dumps(self.summary(), separators=(",", ":"), default=float)
 
 
+def _floats(a: NDArray[np.float64] | Any) -> list[float]:
+    """The elements of a 1-D array (or sequence) as plain floats."""
+    return a.tolist() if isinstance(a, np.ndarray) else [float(e) for e in a]
+
+
 def _angle_deg(q1: NDArray[np.float64], q2: NDArray[np.float64]) -> float:
     """Angle between two unit quaternions, degrees."""
-    d = abs(float(np.dot(q1, q2)))
+    a, b = _floats(q1), _floats(q2)
+    d = abs(a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3])
     return math.degrees(2.0 * math.acos(min(1.0, d)))

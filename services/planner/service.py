@@ -548,13 +548,12 @@ class PlannerService(ServiceApp):
         cmd = self._cmd
         self._seq += 1
         cmd.stamp_ns, cmd.tick, cmd.seq = stamp, tick, self._seq
-        la, oa, wa = out.acceleration, out.orientation, out.angular_velocity
         c = cmd.linear_acceleration
-        c.x, c.y, c.z = float(la[0]), float(la[1]), float(la[2])
+        c.x, c.y, c.z = out.acceleration.tolist()
         r = cmd.orientation_reference
-        r.x, r.y, r.z, r.w = float(oa[0]), float(oa[1]), float(oa[2]), float(oa[3])
+        r.x, r.y, r.z, r.w = out.orientation.tolist()
         w = cmd.angular_velocity_reference
-        w.x, w.y, w.z = float(wa[0]), float(wa[1]), float(wa[2])
+        w.x, w.y, w.z = out.angular_velocity.tolist()
         if self._goal_updates:
             refs = cmd.goal_updates
             for name, goal_stamp in self._goal_updates:
