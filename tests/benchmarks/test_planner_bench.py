@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from benchmarks.planner import (
+    COLD_EVERY,
     LOCKSTEP_RATIO_TARGET,
     MISS_RATIO_TARGET,
     STACK_CPU_TARGET_PCT,
@@ -22,6 +23,7 @@ from benchmarks.planner import (
     ratio_verdict,
     record_stream,
     render_markdown,
+    replay_cold,
     replay_parts,
     replay_total,
     status_window,
@@ -109,6 +111,8 @@ def _result() -> dict[str, Any]:
         "tick_cost": {"states": 100, "sim_s": 0.2, "replays": 1, "replay_mismatches": 0,
                       "task_success": True,
                       "total": percentiles([50.0] * 10),
+                      "total_cold": percentiles([125.0] * 10),
+                      "cold_flush_bytes": 64 * 2**20, "cold_every": 7,
                       "parts": {k: percentiles([10.0] * 10) for k in (
                           "decode", "answer", "runner_step", "controller", "orientation", "encode",
                           "total")}},
@@ -146,6 +150,8 @@ def test_verdicts_and_report_on_synthetic_numbers() -> None:
                     "(d) The whole feeding stack"):
         assert heading in md
     assert "66.0 %" in md
+    assert "**total, caches cold** (64 MiB written before every 7th call" in md
+    assert "(2.5× the warm p50)" in md
     # The platform floor of the same run beside each process and in the verdict.
     assert v["stack_cpu"]["floor_pct"] == 40.0 and v["stack_cpu"]["ratio_to_floor"] == pytest.approx(1.65)
     assert "| arm | 32.0 | 11.0 |" in md and "**40.0**" in md and "the stack 1.65× it" in md
@@ -159,3 +165,6 @@ def test_a_short_recorded_stream_replays_byte_for_byte() -> None:
     parts = replay_parts(rec)
     for k in ("decode", "answer", "runner_step", "controller", "orientation", "encode", "total"):
         assert len(parts[k]) == 200, k
+    # The cold replay answers every state as recorded and times every COLD_EVERY-th one.
+    cold, mismatches = replay_cold(rec)
+    assert mismatches == 0 and len(cold) == -(-200 // COLD_EVERY) and all(t > 0 for t in cold)

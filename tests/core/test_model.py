@@ -276,6 +276,9 @@ def test_time_to_go_counts_down(model: PhaseSpaceModel) -> None:
     for _ in range(600):
         a = ctrl.step(x, v, DT)
         ttg.append(ctrl.time_to_go.max())
+        # The tuple views a control loop reads every tick are the same numbers.
+        assert ctrl.time_to_go_tuple == tuple(ctrl.time_to_go.tolist())
+        assert ctrl.segment_tuple == tuple(ctrl.segment.tolist())
         x = x + v * DT + 0.5 * a * DT * DT
         v = v + a * DT
     ttg = np.array(ttg)

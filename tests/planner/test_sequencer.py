@@ -188,6 +188,33 @@ def test_a_goal_outside_the_workspace_is_never_used(feeding: FeedingConfig, mode
     assert res.summary["state"] == "HOLDING"
 
 
+def test_resolved_goals_are_built_once_and_read_only(feeding: FeedingConfig) -> None:
+    """The per-tick goal lookup: a static goal (with its offset) is one shared read-only array;
+    a live goal one array per accepted update, its velocity estimated from the updates."""
+    from services.planner.sequencer import ZERO3, GoalBook
+
+    book = GoalBook(feeding.task, feeding.scene.positions())
+    scoop = next(s for s in feeding.task.steps if s.name == "scoop")
+    g1, v1, why = book.resolve(scoop, 0)
+    g2, _v2, _ = book.resolve(scoop, 1_000_000)
+    assert why == "" and g1 is g2 and v1 is ZERO3
+    np.testing.assert_allclose(g1, np.asarray(feeding.scene.bowl) + np.asarray(scoop.offset_m))
+    with pytest.raises(ValueError):
+        g1[0] = 0.0
+    with pytest.raises(ValueError):
+        v1[0] = 1.0
+    person = next(s for s in feeding.task.steps if s.live)
+    assert book.resolve(person, 0)[0] is None
+    p0 = np.asarray(feeding.scene.person)
+    assert book.update("person", p0, 0) == ""
+    a, _, _ = book.resolve(person, 10)
+    assert a is book.resolve(person, 20)[0]
+    assert book.update("person", p0 + np.array([0.0, 0.01, 0.0]), 100_000_000) == ""
+    b, vb, _ = book.resolve(person, 100_000_000)
+    assert b is not a and b[1] == pytest.approx(a[1] + 0.01)
+    assert vb[1] == pytest.approx(0.1)  # 1 cm in 0.1 s, the filter's time constant
+
+
 def test_on_goal_lost_neutral_goes_to_the_neutral_position(
     feeding: FeedingConfig, models: TaskModels
 ) -> None:
