@@ -315,6 +315,7 @@ class _CapturePublisher:
 def make_planner(task_file: Path | None = None) -> Any:
     """A :class:`PlannerService` with its bus parts replaced (fake service, capturing publisher)."""
     from services.bus.config import load_config
+    from services.bus.messages import Keys
     from services.planner.config import PlannerConfig
     from services.planner.service import PlannerService
     from services.tasks.feeding import DEFAULT_FEEDING_CONFIG
@@ -326,8 +327,9 @@ def make_planner(task_file: Path | None = None) -> Any:
     svc.svc = _FakeService()  # type: ignore[assignment]
     svc._cmd_pub = _CapturePublisher()  # type: ignore[attr-defined]
     svc._goal_pub = _CapturePublisher()  # type: ignore[attr-defined]  # the planner's goal in use
-    svc._state_key = "psm/arm/state"  # type: ignore[attr-defined]
-    svc._goals_prefix = "psm/goals/"  # type: ignore[attr-defined]
+    keys = Keys()  # the planner's keys on the default prefix, as its setup() derives them
+    svc._state_key = keys.arm_state.key  # type: ignore[attr-defined]
+    svc._goals_prefix = keys.goals_all.key[:-1]  # type: ignore[attr-defined]
     return svc
 
 
@@ -361,7 +363,7 @@ def record_stream(max_sim_s: float = 60.0) -> dict[str, Any]:
             g = Goal(stamp_ns=snap.time_ns, name="person", position=vec3(*person), valid=True,
                      frame_id="base", source="bench")
             stream.append(("goal", g))
-            svc._on_goal(g, "psm/goals/person")
+            svc._on_goal(g, _person_key())
         payload = enc.encode(snap, watchdog_tripped=sim.watchdog_tripped,
                              rejected_commands=sim.counters["rejected"])
         stream.append(("state", payload))
@@ -380,12 +382,29 @@ def record_stream(max_sim_s: float = 60.0) -> dict[str, Any]:
             "sim_s": len(replies) * dt_s}
 
 
-def replay_total(rec: dict[str, Any]) -> tuple[list[float], int]:
+#: Cold-cache replay: bytes written before a timed call (more than the machine's caches) ...
+COLD_FLUSH_BYTES = 64 * 1024 * 1024
+#: ... before every this many calls (the calls in between run warm and are not timed).
+COLD_EVERY = 7
+
+
+def _person_key() -> str:
+    """The key the recorded person goals arrive on (the planner's default prefix)."""
+    from services.bus.messages import Keys
+
+    return Keys().goal("person").key
+
+
+def replay_total(rec: dict[str, Any], cold_every: int = 0) -> tuple[list[float], int]:
     """Replay the stream into a fresh service, timing each ``_on_state`` call [µs]; returns the
-    times and the number of commands that differ from the recorded ones."""
+    times and the number of commands that differ from the recorded ones. ``cold_every`` > 0:
+    the caches are flushed (:data:`COLD_FLUSH_BYTES` written, one write per 64-byte line) before
+    every ``cold_every``-th call, and only those calls are timed."""
     svc = make_planner()
     pub, enc = svc._cmd_pub, rec["encoding"]
     on_state, on_goal = svc._on_state, svc._on_goal
+    person = _person_key()
+    junk = np.ones(COLD_FLUSH_BYTES // 8) if cold_every > 0 else None
     clock = time.perf_counter_ns
     out: list[float] = []
     diff = 0
@@ -393,47 +412,16 @@ def replay_total(rec: dict[str, Any]) -> tuple[list[float], int]:
     samples = [(kind, _Sample(x, enc) if kind == "state" else x) for kind, x in rec["stream"]]
     for kind, item in samples:
         if kind == "goal":
-            on_goal(item, "psm/goals/person")
+            on_goal(item, person)
             continue
-        t0 = clock()
-        on_state(item)
-        out.append((clock() - t0) * 1e-3)
-        diff += pub.last != rec["replies"][i]
-        i += 1
-    return out, diff
-
-
-#: Cold-cache replay: bytes written before a timed call (more than the machine's caches) ...
-COLD_FLUSH_BYTES = 64 * 1024 * 1024
-#: ... before every this many calls (the calls in between run warm and are not timed).
-COLD_EVERY = 7
-
-
-def replay_cold(rec: dict[str, Any]) -> tuple[list[float], int]:
-    """:func:`replay_total` with the caches flushed (:data:`COLD_FLUSH_BYTES` written, one write
-    per 64-byte line) before every :data:`COLD_EVERY`-th ``_on_state`` call, only those calls
-    timed [µs]; returns them and the number of commands differing from the recorded ones."""
-    import numpy as np
-
-    junk = np.ones(COLD_FLUSH_BYTES // 8)
-    svc = make_planner()
-    pub, enc = svc._cmd_pub, rec["encoding"]
-    clock = time.perf_counter_ns
-    out: list[float] = []
-    diff = 0
-    i = 0
-    for kind, item in rec["stream"]:
-        if kind == "goal":
-            svc._on_goal(item, "psm/goals/person")
-            continue
-        sample = _Sample(item, enc)
-        if i % COLD_EVERY == 0:
-            junk[::8] += 1.0
+        if junk is None or i % cold_every == 0:
+            if junk is not None:
+                junk[::8] += 1.0
             t0 = clock()
-            svc._on_state(sample)
+            on_state(item)
             out.append((clock() - t0) * 1e-3)
         else:
-            svc._on_state(sample)
+            on_state(item)
         diff += pub.last != rec["replies"][i]
         i += 1
     return out, diff
@@ -445,6 +433,7 @@ def replay_parts(rec: dict[str, Any]) -> dict[str, list[float]]:
 
     svc = make_planner()
     pub, enc = svc._cmd_pub, rec["encoding"]
+    person = _person_key()
     runner = svc.runner
     clock = time.perf_counter_ns
     parts: dict[str, list[float]] = {k: [] for k in (
@@ -467,7 +456,7 @@ def replay_parts(rec: dict[str, Any]) -> dict[str, list[float]]:
     try:
         for kind, item in rec["stream"]:
             if kind == "goal":
-                svc._on_goal(item, "psm/goals/person")
+                svc._on_goal(item, person)
                 continue
             sample = _Sample(item, enc)
             for k in acc:
@@ -514,7 +503,7 @@ def bench_tick_cost(reps: int) -> dict[str, Any]:
     parts = replay_parts(rec)
     cold: list[float] = []
     for _ in range(reps):
-        t, d = replay_cold(rec)
+        t, d = replay_total(rec, cold_every=COLD_EVERY)
         cold += t
         mismatches += d
     s = rec["summary"]

@@ -23,7 +23,6 @@ from benchmarks.planner import (
     ratio_verdict,
     record_stream,
     render_markdown,
-    replay_cold,
     replay_parts,
     replay_total,
     status_window,
@@ -166,5 +165,5 @@ def test_a_short_recorded_stream_replays_byte_for_byte() -> None:
     for k in ("decode", "answer", "runner_step", "controller", "orientation", "encode", "total"):
         assert len(parts[k]) == 200, k
     # The cold replay answers every state as recorded and times every COLD_EVERY-th one.
-    cold, mismatches = replay_cold(rec)
+    cold, mismatches = replay_total(rec, cold_every=COLD_EVERY)
     assert mismatches == 0 and len(cold) == -(-200 // COLD_EVERY) and all(t > 0 for t in cold)
