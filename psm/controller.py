@@ -61,7 +61,18 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from psm.errors import ParameterError, ShapeError
-from psm.pstf import K_MAX_FRACTION, k_for_duration, k_limit, stable_segment_time, time_to_reach
+from psm.pstf import (
+    K_MAX_FRACTION,
+    K_ZERO_TOL,
+    THREE_HALVES_PI,
+    TWO_PI,
+    k_for_duration,
+    k_limit,
+    time_to_reach,
+)
+
+_INF = math.inf
+_sqrt, _log, _atan2 = math.sqrt, math.log, math.atan2
 
 #: Segment retiming (option ``segment_retime``) acts on a segment entered with a velocity within
 #: this fraction of the segment's speed scale ``max(|v_j|, |v_n|)`` of its via-point's ...
@@ -338,9 +349,10 @@ class PSMController:
         braking = [False] * D
         all_done = True
         t_big = 0.0  # the largest finite t_e of the dimensions that take part in the synchronisation
+        dimension = self._dimension
         for d in range(D):
             x_d, v_d = xs[d], vs[d]
-            a, te, mode = self._dimension(d, x_d, v_d, v_world[d], dt)
+            a, te, mode = dimension(d, x_d, v_d, v_world[d], dt)
             acc[d] = a
             t_e[d] = te
             modes[d] = mode
@@ -350,7 +362,7 @@ class PSMController:
                 # correction, not demonstrated progress) take no part in the synchronisation.
                 if not holds[d] and not returning[d]:
                     braking[d] = True
-                    if t_big < te < math.inf:
+                    if t_big < te < _INF:
                         t_big = te
             elif not (mode == MODE_TERMINAL and abs(x_d - goal[d]) <= pos_tol and abs(v_d) <= vel_tol):
                 all_done = False
@@ -382,7 +394,8 @@ class PSMController:
                     # the dimension catches up by slowing over the rest of the motion instead of
                     # holding still at once (the dimensions still arrive together).
                     for d in range(D):
-                        excused[d] += max(0.0, leads[d] - lead_prev[d])
+                        opened = leads[d] - lead_prev[d]
+                        excused[d] += opened if opened > 0.0 else 0.0
                     self._goal_moved = False
                 elif 0.0 < t_big < self._t_big_prev:
                     shrink = t_big / self._t_big_prev
@@ -392,7 +405,8 @@ class PSMController:
                 self._lead = leads
                 for d in range(D):
                     if leads[d] > 0.0:
-                        s = 1.0 - max(0.0, leads[d] - excused[d]) / tau
+                        lead = leads[d] - excused[d]
+                        s = 1.0 - (lead if lead > 0.0 else 0.0) / tau  # 1 − max(0, lead)/τ
                         if s < 0.0:
                             s = 0.0
                         a_d = acc[d]
@@ -505,12 +519,19 @@ class PSMController:
             # Clamp k below the stability bound of the measured state. The clamp only tightens
             # within a segment: re-solving from each new state would otherwise ride the bound
             # and creep (the bound rises as the segment progresses).
-            # (k_limit written out: this is the hot path; Δ ≠ 0 here.)
-            speed_ratio = (abs(v_eff) + abs(v_n)) / delta
+            # (This is the hot path: k_limit, the min/max and stable_segment_time are written out
+            # with the same operations in the same order, so the results are the same; Δ ≠ 0.)
+            speed_sum = abs(v_eff) + abs(v_n)
+            speed_ratio = speed_sum / delta
             k_max = speed_ratio * speed_ratio
             k_bound = K_MAX_FRACTION * k_max  # ρ k_max: the bound without the speed margin κ
             k_stable = k_bound - chain.kappa[j]
-            k_eff = min(k_learned, k_stable, self._k_cap[d])
+            k_cap = self._k_cap[d]
+            k_eff = k_learned  # min(k_learned, k_stable, k_cap)
+            if k_stable < k_eff:
+                k_eff = k_stable
+            if k_cap < k_eff:
+                k_eff = k_cap
             if k_eff < k_learned:
                 self._k_cap[d] = k_eff
             # Keep the law within the acceleration limit where the via-point allows it: the line
@@ -525,19 +546,46 @@ class PSMController:
             # now and would need more than the limit to stop later.
             c0 = (v_n * v_n - v_eff * v_eff) / (2.0 * delta)  # the law's mid-point acceleration
             k_room = 2.0 * (a_max - abs(c0)) / abs(delta)
-            k_eff = min(max(k_eff, -k_room), k_room, k_bound) if k_room > 0.0 else min(0.0, k_bound)
+            if k_room > 0.0:  # min(max(k_eff, −k_room), k_room, k_bound)
+                if -k_room > k_eff:
+                    k_eff = -k_room
+                if k_room < k_eff:
+                    k_eff = k_room
+                if k_bound < k_eff:
+                    k_eff = k_bound
+            else:  # min(0, k_bound)
+                k_eff = k_bound if k_bound < 0.0 else 0.0
             if wrong_way:
                 t_stop = -v_along / m
                 x_stop = x + 0.5 * v * t_stop
                 t_seg = t_stop + time_to_reach(x_stop, 0.0, x_n, v_n, k_eff)
-            else:
+            elif k_eff < k_max and v_n * delta >= 0.0:
                 # Stable by construction (v_eff along Δ, k_eff ≤ ρ k_max) unless k_max = 0 (rest
-                # to rest: k_eff may sit on the bound) or v_n points against Δ: then the checked
-                # closed form decides (it returns inf for an unstable segment).
-                if k_eff < k_max and v_n * delta >= 0.0:
-                    t_seg = stable_segment_time(delta, c0, v_eff, v_n, k_eff)
+                # to rest: k_eff may sit on the bound) or v_n points against Δ (the checked
+                # closed form below decides those: it returns inf for an unstable segment).
+                # psm.pstf.stable_segment_time:
+                t0 = 2.0 * abs(delta) / speed_sum if speed_sum > 0.0 else _INF
+                if k_eff == 0.0 or (t0 != _INF and abs(k_eff) * t0 * t0 < K_ZERO_TOL):
+                    t_seg = t0
                 else:
-                    t_seg = time_to_reach(x, v_eff, x_n, v_n, k_eff)
+                    a_c = c0 - 0.5 * k_eff * delta
+                    a_n = c0 + 0.5 * k_eff * delta
+                    if k_eff > 0.0:
+                        w = _sqrt(k_eff)
+                        p_c, q_c = a_c / w + v_eff, a_c / w - v_eff
+                        ratio = (a_n / w + v_n) / p_c if abs(p_c) >= abs(q_c) else q_c / (a_n / w - v_n)
+                        if not ratio > 0.0:
+                            t_seg = _INF
+                        else:
+                            t_seg = _log(ratio) / w
+                            if 0.0 > t_seg:
+                                t_seg = 0.0
+                    else:
+                        w = _sqrt(-k_eff)
+                        dtheta = (_atan2(-v_n * w, -a_n) - _atan2(-v_eff * w, -a_c)) % TWO_PI
+                        t_seg = 0.0 if dtheta > THREE_HALVES_PI else dtheta / w
+            else:
+                t_seg = time_to_reach(x, v_eff, x_n, v_n, k_eff)
             if t_seg <= dt and not wrong_way:
                 if last:
                     break  # terminal capture (or overshoot), decided below

@@ -33,8 +33,10 @@ K_ZERO_TOL = 1e-8
 K_MAX_FRACTION = 0.97
 #: Below this |z| = |k| t² the series expansions of cosh/sinh are used (error < 1e-13).
 _Z_SERIES = 1e-5
-_TWO_PI = 2.0 * math.pi
-_THREE_HALVES_PI = 1.5 * math.pi
+TWO_PI = 2.0 * math.pi
+#: A k < 0 segment's phase advance above this is rounding around 0 (a monotone segment covers at
+#: most half a period; see :func:`time_to_reach`).
+THREE_HALVES_PI = 1.5 * math.pi
 
 
 def mid_point_form(x_c: float, v_c: float, x_n: float, v_n: float) -> tuple[float, float]:
@@ -237,9 +239,9 @@ def _travel_time(delta: float, c0: float, v_c: float, v_n: float, k: float, t0: 
             return math.inf
         return max(math.log(ratio) / w, 0.0)
     w = math.sqrt(-k)
-    dtheta = (math.atan2(-v_n * w, -a_n) - math.atan2(-v_c * w, -a_c)) % _TWO_PI
+    dtheta = (math.atan2(-v_n * w, -a_n) - math.atan2(-v_c * w, -a_c)) % TWO_PI
     # A monotone segment covers at most half a period; 2π − ε only arises from rounding near 0.
-    return 0.0 if dtheta > _THREE_HALVES_PI else dtheta / w
+    return 0.0 if dtheta > THREE_HALVES_PI else dtheta / w
 
 
 def k_for_duration(
@@ -286,8 +288,8 @@ def k_for_duration(
                 return math.inf
             return max(log(ratio) / w, 0.0) - duration
         w = sqrt(-k)
-        dtheta = (atan2(-v_n * w, -a_n) - atan2(-v_c * w, -a_c)) % _TWO_PI
-        return (0.0 if dtheta > _THREE_HALVES_PI else dtheta / w) - duration
+        dtheta = (atan2(-v_n * w, -a_n) - atan2(-v_c * w, -a_c)) % TWO_PI
+        return (0.0 if dtheta > THREE_HALVES_PI else dtheta / w) - duration
 
     tol = 1e-9 * duration
     scale = (math.pi / duration) ** 2

@@ -288,6 +288,28 @@ def test_time_to_go_counts_down(model: PhaseSpaceModel) -> None:
     assert -1.2 < slope < -0.8
 
 
+@pytest.mark.parametrize("k", [2.0, -5.0, 0.0, 3.8, 1e-9])
+@pytest.mark.parametrize("v_n", [0.0, 0.15])
+def test_time_to_go_is_the_closed_form_time_of_the_segment(k: float, v_n: float) -> None:
+    """The controller's t_e in a segment is psm.pstf.time_to_reach of the measured state with the
+    segment's slope, bit for bit (the hot path writes the closed form out), for k > 0, k < 0,
+    k ≈ 0 and k near the stability bound, towards a via-point at rest and one in motion."""
+    from psm.controller import DimensionChain, PSMController
+    from psm.pstf import time_to_reach
+
+    # Two segments, -0.4 -> -0.2 -> 0 (goal-relative), the via-point at -0.2 moving at v_n.
+    chain = DimensionChain(
+        offsets=(-0.4, -0.2, 0.0), velocities=(0.0, v_n, 0.0), k=(k, -1.0), kappa=(1e-3, 1e-3),
+        durations=(1.0, 1.0), hold=False,
+    )
+    ctrl = PSMController([chain], [1.0], np.array([50.0]), 0.0, 1e-6, 1e-6)
+    x, v = 1.0 - 0.3, 0.2  # in the first segment, moving towards the via-point at 0.8
+    ctrl.step([x], [v], DT)
+    assert ctrl.segment_tuple == (0,)
+    # k_max = ((|v| + |v_n|)/Δ)²: every k above stays below 0.97 k_max - κ, so it is used as is.
+    assert ctrl.time_to_go_tuple[0] == time_to_reach(x, v, 0.8, v_n, k) + 1.0
+
+
 def test_one_dimensional_demonstration() -> None:
     t = np.linspace(0, 1, 501)
     x = 0.3 * (1 - np.cos(np.pi * t)) / 2
