@@ -709,7 +709,6 @@ class Supervisor:
 
     def print_summary(self, summary: Summary) -> None:
         """Print the per-process summary (and where the recording is)."""
-        from rich.console import Console
         from rich.table import Table
 
         t = Table(title=f"stack {self.cfg.stack.name}: {summary.reason or 'stopped'}")
@@ -719,10 +718,10 @@ class Supervisor:
             counts = ("-" if r[k] is None else str(r[k])
                       for k in ("received", "published", "rejected", "errors"))
             t.add_row(r["service"], f"{r['uptime_s']:.1f}", *counts, str(r["exit_code"]))
-        console = Console(file=self.out, width=max(100, Console(file=self.out).width))
-        console.print(t)
-        if summary.task is not None:
-            console.print(task_table(summary.task))
+        tables = [t] + ([task_table(summary.task)] if summary.task is not None else [])
+        console = summary_console(self.out, tables)
+        for tb in tables:
+            console.print(tb)
         if summary.arm is not None:
             console.print(arm_line(summary.arm))
         path = self.run_dir / "summary.json"
@@ -732,6 +731,17 @@ class Supervisor:
         if summary.recording:
             console.print(f"recording: {summary.recording}")
         console.print(f"logs: {self.run_dir}/")
+
+
+def summary_console(out: TextIO | None, tables: Sequence[Any]) -> Any:
+    """A ``rich`` Console on ``out`` as wide as ``tables`` need unwrapped (a narrower one would
+    cut step names and figures short), at least 100 columns and at least the terminal's width."""
+    from rich.console import Console
+
+    probe = Console(file=out)
+    wide = probe.options.update_width(1000)
+    width = max(100, probe.width, *(probe.measure(tb, options=wide).maximum for tb in tables))
+    return Console(file=out, width=width)
 
 
 def _read_json(path: str) -> dict[str, Any] | None:

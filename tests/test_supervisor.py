@@ -293,3 +293,29 @@ listen = ["tcp/127.0.0.1:{port}"]
             if p is not None:
                 p.stop(5)
         sup.shutdown()
+
+
+def test_the_task_summary_is_never_cut_short_on_a_narrow_output() -> None:
+    """``psm up``'s closing tables on an 80-column pipe (a CI log): every step name and every
+    figure printed whole, not ``back_to_…``."""
+    import io
+
+    from services.supervisor import summary_console, task_table
+
+    steps = [
+        {"step": name, "outcome": "reached", "duration_s": 2.875, "position_error_m": 0.0038,
+         "velocity_error_mps": 0.0296, "peak_speed_mps": 0.2764, "peak_speed_ratio": 0.99,
+         "peak_accel_mps2": 2.34, "max_orientation_error_deg": 0.0}
+        for name in ("grasp_spoon", "back_to_neutral", "reach_person")
+    ]
+    task = {"task": "feeding", "state": "done", "detail": "", "success": True, "steps_succeeded": 3,
+            "steps_total": 3, "duration_s": 17.03, "steps": steps,
+            "planner": {"latency_us": {"p50": 190.0, "p99": 615.0, "max": 3069.0, "n": 8778}}}
+    out = io.StringIO()
+    table = task_table(task)
+    summary_console(out, [table]).print(table)
+    text = out.getvalue()
+    for cell in ("back_to_neutral", "grasp_spoon", "reach_person", "2.88", "3.8", "29.6", "0.276",
+                 "vel err mm/s", "orient err °", "p99 615 µs"):
+        assert cell in text, text
+    assert "…" not in text, text
