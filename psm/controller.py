@@ -61,18 +61,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from psm.errors import ParameterError, ShapeError
-from psm.pstf import (
-    K_MAX_FRACTION,
-    K_ZERO_TOL,
-    THREE_HALVES_PI,
-    TWO_PI,
-    k_for_duration,
-    k_limit,
-    time_to_reach,
-)
+from psm.pstf import K_MAX_FRACTION, k_for_duration, k_limit, stable_segment_time, time_to_reach
 
 _INF = math.inf
-_sqrt, _log, _atan2 = math.sqrt, math.log, math.atan2
 
 #: Segment retiming (option ``segment_retime``) acts on a segment entered with a velocity within
 #: this fraction of the segment's speed scale ``max(|v_j|, |v_n|)`` of its via-point's ...
@@ -519,8 +510,8 @@ class PSMController:
             # Clamp k below the stability bound of the measured state. The clamp only tightens
             # within a segment: re-solving from each new state would otherwise ride the bound
             # and creep (the bound rises as the segment progresses).
-            # (This is the hot path: k_limit, the min/max and stable_segment_time are written out
-            # with the same operations in the same order, so the results are the same; Δ ≠ 0.)
+            # (This is the hot path: k_limit and the min/max are written out with the same
+            # operations in the same order, so the results are the same; Δ ≠ 0.)
             speed_sum = abs(v_eff) + abs(v_n)
             speed_ratio = speed_sum / delta
             k_max = speed_ratio * speed_ratio
@@ -563,27 +554,7 @@ class PSMController:
                 # Stable by construction (v_eff along Δ, k_eff ≤ ρ k_max) unless k_max = 0 (rest
                 # to rest: k_eff may sit on the bound) or v_n points against Δ (the checked
                 # closed form below decides those: it returns inf for an unstable segment).
-                # psm.pstf.stable_segment_time:
-                t0 = 2.0 * abs(delta) / speed_sum if speed_sum > 0.0 else _INF
-                if k_eff == 0.0 or (t0 != _INF and abs(k_eff) * t0 * t0 < K_ZERO_TOL):
-                    t_seg = t0
-                else:
-                    a_c = c0 - 0.5 * k_eff * delta
-                    a_n = c0 + 0.5 * k_eff * delta
-                    if k_eff > 0.0:
-                        w = _sqrt(k_eff)
-                        p_c, q_c = a_c / w + v_eff, a_c / w - v_eff
-                        ratio = (a_n / w + v_n) / p_c if abs(p_c) >= abs(q_c) else q_c / (a_n / w - v_n)
-                        if not ratio > 0.0:
-                            t_seg = _INF
-                        else:
-                            t_seg = _log(ratio) / w
-                            if 0.0 > t_seg:
-                                t_seg = 0.0
-                    else:
-                        w = _sqrt(-k_eff)
-                        dtheta = (_atan2(-v_n * w, -a_n) - _atan2(-v_eff * w, -a_c)) % TWO_PI
-                        t_seg = 0.0 if dtheta > THREE_HALVES_PI else dtheta / w
+                t_seg = stable_segment_time(delta, c0, v_eff, v_n, k_eff)
             else:
                 t_seg = time_to_reach(x, v_eff, x_n, v_n, k_eff)
             if t_seg <= dt and not wrong_way:

@@ -33,10 +33,12 @@ K_ZERO_TOL = 1e-8
 K_MAX_FRACTION = 0.97
 #: Below this |z| = |k| t² the series expansions of cosh/sinh are used (error < 1e-13).
 _Z_SERIES = 1e-5
-TWO_PI = 2.0 * math.pi
+_TWO_PI = 2.0 * math.pi
 #: A k < 0 segment's phase advance above this is rounding around 0 (a monotone segment covers at
 #: most half a period; see :func:`time_to_reach`).
-THREE_HALVES_PI = 1.5 * math.pi
+_THREE_HALVES_PI = 1.5 * math.pi
+_INF = math.inf
+_sqrt, _log, _atan2 = math.sqrt, math.log, math.atan2
 
 
 def mid_point_form(x_c: float, v_c: float, x_n: float, v_n: float) -> tuple[float, float]:
@@ -216,32 +218,28 @@ def time_to_reach(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> f
 
 def stable_segment_time(delta: float, c0: float, v_c: float, v_n: float, k: float) -> float:
     """:func:`time_to_reach` [s] of a segment already known to be stable, without the checks (the
-    controller's hot path): ``delta = x_n − x_c ≠ 0``, both velocities along it or zero,
-    ``k < k_max``; ``c0 = (v_n² − v_c²)/(2Δ)`` [unit/s²] its mid-point acceleration."""
+    controller's hot path, once per dimension and tick): ``delta = x_n − x_c ≠ 0``, both
+    velocities along it or zero, ``k < k_max``; ``c0 = (v_n² − v_c²)/(2Δ)`` [unit/s²] its
+    mid-point acceleration. (:func:`k_for_duration`'s root-finder writes the same closed form
+    out in its closure.)"""
     speed_sum = abs(v_c) + abs(v_n)
-    t0 = 2.0 * abs(delta) / speed_sum if speed_sum > 0.0 else math.inf
-    return _travel_time(delta, c0, v_c, v_n, k, t0)
-
-
-def _travel_time(delta: float, c0: float, v_c: float, v_n: float, k: float, t0: float) -> float:
-    """The closed-form time of a segment already known to be stable (no checks: hot loops).
-
-    ``c0`` is the mid-point acceleration, ``t0 = 2|Δ|/(|v_c|+|v_n|)`` the ``k = 0`` time."""
-    if k == 0.0 or (t0 != math.inf and abs(k) * t0 * t0 < K_ZERO_TOL):
-        return t0
+    t0 = 2.0 * abs(delta) / speed_sum if speed_sum > 0.0 else _INF
+    if k == 0.0 or (t0 != _INF and abs(k) * t0 * t0 < K_ZERO_TOL):
+        return t0  # k ≈ 0: t = 2Δ/(v_c + v_n)
     a_c = c0 - 0.5 * k * delta
     a_n = c0 + 0.5 * k * delta
     if k > 0.0:
-        w = math.sqrt(k)
+        w = _sqrt(k)
         p_c, q_c = a_c / w + v_c, a_c / w - v_c
         ratio = (a_n / w + v_n) / p_c if abs(p_c) >= abs(q_c) else q_c / (a_n / w - v_n)
         if not ratio > 0.0:
-            return math.inf
-        return max(math.log(ratio) / w, 0.0)
-    w = math.sqrt(-k)
-    dtheta = (math.atan2(-v_n * w, -a_n) - math.atan2(-v_c * w, -a_c)) % TWO_PI
+            return _INF
+        t = _log(ratio) / w
+        return 0.0 if 0.0 > t else t  # max(t, 0)
+    w = _sqrt(-k)
+    dtheta = (_atan2(-v_n * w, -a_n) - _atan2(-v_c * w, -a_c)) % _TWO_PI
     # A monotone segment covers at most half a period; 2π − ε only arises from rounding near 0.
-    return 0.0 if dtheta > THREE_HALVES_PI else dtheta / w
+    return 0.0 if dtheta > _THREE_HALVES_PI else dtheta / w
 
 
 def k_for_duration(
@@ -268,7 +266,7 @@ def k_for_duration(
     c0 = (v_n * v_n - v_c * v_c) / (2.0 * delta)
     t0 = 2.0 * abs(delta) / (abs(v_c) + abs(v_n)) if v_c or v_n else math.inf
 
-    # excess_time is _travel_time(delta, c0, v_c, v_n, k, t0) − duration written out (the same
+    # excess_time is stable_segment_time(delta, c0, v_c, v_n, k) − duration written out (the same
     # operations in the same order, so the same result): the root-finding evaluates it ~7 times
     # per segment of a fit, and the extra call and re-derived constants cost ~15 % of a solve.
     t0_finite = t0 != math.inf
@@ -288,8 +286,8 @@ def k_for_duration(
                 return math.inf
             return max(log(ratio) / w, 0.0) - duration
         w = sqrt(-k)
-        dtheta = (atan2(-v_n * w, -a_n) - atan2(-v_c * w, -a_c)) % TWO_PI
-        return (0.0 if dtheta > THREE_HALVES_PI else dtheta / w) - duration
+        dtheta = (atan2(-v_n * w, -a_n) - atan2(-v_c * w, -a_c)) % _TWO_PI
+        return (0.0 if dtheta > _THREE_HALVES_PI else dtheta / w) - duration
 
     tol = 1e-9 * duration
     scale = (math.pi / duration) ** 2
