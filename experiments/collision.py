@@ -25,9 +25,14 @@ Metrics per run:
 * ``arm clearance`` [m]: the smallest distance between the arm's links (convex hulls of the
   robot as the arm service loads it, :class:`services.robot.clearance.ArmClearance`, no margin)
   and the wall, every 5th tick of the whole task;
-* ``peak lateral speed`` [m/s]: the largest ``v_y`` in reach_person, and ``below the top``: the
-  largest ``v_y`` while the end effector is below the top of the inflated wall; ``ratio``: with /
-  without the wall (the slow-down);
+* ``peak lateral speed`` [m/s]: the largest ``v_y`` in reach_person; ``held``: the largest ``v_y``
+  while the end effector is below the top of the inflated wall and the monitor predicts the
+  collision (the planner's stop on y is set, eq. 15), and ``below the top``: the same without
+  the second condition, so it includes the moments after the release, when the straight path
+  to the via-point already clears the volume's upper edge and y sets off while z climbs the
+  rest; each ratio is with / without the wall (the free run's largest ``v_y`` below the top);
+  ``release`` [m]: the height of the end effector above the top of the inflated wall when the
+  stop is released (negative: below it);
 * ``collision stops``: predicted collisions the planner acted on (eq. 15); ``protective stops``:
   the monitor's whole-arm stops;
 * ``success``: the task completed (the person reached within 1 cm) with the arm clear of the
@@ -40,6 +45,7 @@ with the obstacle set (``psm/obstacles``, ``psm/viz/scene``).
 
 from __future__ import annotations
 
+import math
 import time
 from pathlib import Path
 from typing import Any
@@ -115,12 +121,29 @@ def step_mask(res: Any, name: str = STEP) -> np.ndarray:
 
 
 def lateral(res: Any, top_m: float) -> dict[str, float]:
-    """reach_person's peak lateral speed [m/s], overall and while below ``top_m`` [m]."""
+    """reach_person's peak lateral speed [m/s]: overall (``peak_vy``), while below ``top_m`` [m]
+    (``peak_vy_below``) and while below it with a collision predicted, the stop on y set
+    (``peak_vy_held``; 0 when there never is one); ``release_m`` [m]: the end effector's height
+    above ``top_m`` at the first state after the step's last collision prediction (NaN: no
+    prediction, or none released in the step)."""
     m = step_mask(res)
     v, x = res.trace["v"][m], res.trace["x"][m]
+    collision = res.trace["collision"][m]
     below = x[:, 2] < top_m
+    held = below & collision
+    predicted = np.flatnonzero(collision)
+    release = predicted[-1] + 1 if predicted.size else x.shape[0]
     return {"peak_vy": float(v[:, LATERAL].max()),
-            "peak_vy_below": float(v[below, LATERAL].max()) if below.any() else 0.0}
+            "peak_vy_below": float(v[below, LATERAL].max()) if below.any() else 0.0,
+            "peak_vy_held": float(v[held, LATERAL].max()) if held.any() else 0.0,
+            "release_m": float(x[release, 2] - top_m) if release < x.shape[0] else math.nan}
+
+
+def _height_words(dz_m: float) -> str:
+    """``dz_m`` [m] above (positive) or below a height, in words."""
+    if math.isnan(dz_m):
+        return "never released, at"
+    return f"{abs(1e3 * dz_m):.1f} mm {'above' if dz_m >= 0.0 else 'below'}"
 
 
 def step_duration(res: Any, name: str = STEP) -> float:
@@ -282,6 +305,9 @@ def run(out_dir: Path, *, seed: int, quick: bool, progress: Progress) -> Experim
             "peak_vy_below_mps": with_lat["peak_vy_below"],
             "free_peak_vy_below_mps": free_lat["peak_vy_below"],
             "slowdown_ratio": with_lat["peak_vy_below"] / free_lat["peak_vy_below"],
+            "peak_vy_held_mps": with_lat["peak_vy_held"],
+            "held_ratio": with_lat["peak_vy_held"] / free_lat["peak_vy_below"],
+            "release_m": with_lat["release_m"],
             "collision_stops": int(res.runner.collision_stops),
             "protective_stops": int(res.monitor.protective_stops),
             "step_duration_s": d_with, "extra_s": d_with - d_free,
@@ -303,9 +329,12 @@ def run(out_dir: Path, *, seed: int, quick: bool, progress: Progress) -> Experim
         Column("success", "success"), Column("ee_clearance_m", "EE clearance", "m", 3),
         Column("safety_volume_m", "EE to safety volume", "m", 4),
         Column("arm_clearance_m", "arm clearance", "m", 3), Column("closest_link", "closest link"),
+        Column("peak_vy_held_mps", "peak v_y held (stop set, below the top)", "m/s", 3),
+        Column("held_ratio", "held / no wall", "", 3),
+        Column("release_m", "released at, above the top", "m", 4),
         Column("peak_vy_below_mps", "peak v_y below the top", "m/s", 3),
         Column("free_peak_vy_below_mps", "same, no wall", "m/s", 3),
-        Column("slowdown_ratio", "ratio", "", 3),
+        Column("slowdown_ratio", "below the top / no wall", "", 3),
         Column("peak_vy_mps", "peak v_y", "m/s", 3), Column("peak_vy_ratio", "peak v_y / no wall", "", 2),
         Column("collision_stops", "collision stops", digits=0),
         Column("protective_stops", "protective stops", digits=0),
@@ -342,17 +371,27 @@ def run(out_dir: Path, *, seed: int, quick: bool, progress: Progress) -> Experim
     out.headline["paper_slowdown"] = Headline(
         "lateral speed below the wall's top, paper's wall / no wall", paper["slowdown_ratio"], "",
         f"{paper['peak_vy_below_mps']:.3f} vs {paper['free_peak_vy_below_mps']:.3f} m/s")
+    held_worst = max(rows, key=lambda r: r["held_ratio"])
+    out.headline["held_slowdown"] = Headline(
+        "lateral speed while the stop holds y, worst wall / no wall", held_worst["held_ratio"], "",
+        f"wall {held_worst['run']}: {held_worst['peak_vy_held_mps']:.3f} vs "
+        f"{held_worst['free_peak_vy_below_mps']:.3f} m/s")
     out.headline["paper_extra_time"] = Headline(f"{STEP}: extra time, paper's wall", paper["extra_s"], "s")
     out.verdict("avoids_the_wall", all(r["success"] for r in rows),
                 "the person is reached with the arm clear of the wall (paper: the spoon is brought to the "
                 "user around the obstacle)", f"{n_ok}/{len(rows)}; min arm clearance "
                 f"{min(r['arm_clearance_m'] for r in rows):.3f} m, EE never inside the safety volume: "
                 f"{all(r['safety_volume_m'] > -FACE_TOL_M for r in rows)}")
-    worst = max(r["slowdown_ratio"] for r in rows)
-    out.verdict("lateral_slows_down", worst <= SLOWDOWN_TARGET,
-                f"y slows down while z is below the wall (paper: the y component decreased its velocity); "
-                f"peak v_y below the top ≤ {SLOWDOWN_TARGET}× the free run's",
-                f"worst ratio {worst:.3f}, paper's wall {paper['slowdown_ratio']:.3f}")
+    worst_held = max(r["held_ratio"] for r in rows)
+    worst = max(rows, key=lambda r: r["slowdown_ratio"])
+    out.verdict("lateral_slows_down", worst_held <= SLOWDOWN_TARGET,
+                "y slows down while the wall blocks its path (paper: the y component decreased its "
+                "velocity until z had cleared the obstacle): peak v_y while the stop is set and the end "
+                f"effector below the top ≤ {SLOWDOWN_TARGET}× the free run's peak below the top",
+                f"worst ratio {worst_held:.3f}, paper's wall {paper['held_ratio']:.3f}; below the top "
+                f"including after the release: worst {worst['slowdown_ratio']:.3f} (wall {worst['run']}: "
+                f"the stop released {_height_words(worst['release_m'])} the top, where the straight path "
+                "to the via-point already clears the safety volume)")
     resumed = all(r["peak_vy_ratio"] >= 0.5 for r in rows)
     out.verdict("lateral_resumes", resumed,
                 "y resumes once z has cleared the wall (paper: y resumed its normal trajectory): peak v_y "
