@@ -122,10 +122,11 @@ def step_mask(res: Any, name: str = STEP) -> np.ndarray:
 
 def lateral(res: Any, top_m: float) -> dict[str, float]:
     """reach_person's peak lateral speed [m/s]: overall (``peak_vy``), while below ``top_m`` [m]
-    (``peak_vy_below``) and while below it with a collision predicted, the stop on y set
-    (``peak_vy_held``; 0 when there never is one); ``release_m`` [m]: the end effector's height
-    above ``top_m`` at the first state after the step's last collision prediction (NaN: no
-    prediction, or none released in the step)."""
+    (``peak_vy_below``) and while below it with a collision predicted, the planner's collision
+    stop set (``peak_vy_held``; 0 when there never is one; for these walls the stop is on y, the
+    end effector's path entering the safety volume through the face towards the scoop);
+    ``release_m`` [m]: the end effector's height above ``top_m`` at the first state after the
+    step's last collision prediction (NaN: no prediction, or none released in the step)."""
     m = step_mask(res)
     v, x = res.trace["v"][m], res.trace["x"][m]
     collision = res.trace["collision"][m]
