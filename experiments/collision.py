@@ -63,8 +63,9 @@ PAPER = (0.465, 0.23)
 STEP = "reach_person"
 LATERAL = 1  # y
 CLEARANCE_EVERY = 5  # ticks between the exact whole-arm clearances of the metric
-#: Targets: the lateral speed below the wall's top at most this share of the free run's; the
-#: end effector's stop on the safety volume's face within this [m] (the braking law's last tick).
+#: Targets: the lateral speed while the collision stop is set and the end effector is below the
+#: wall's top at most this share of the free run's peak below the top; the end effector's stop on
+#: the safety volume's face within this [m] (the braking law's last tick).
 SLOWDOWN_TARGET = 0.5
 FACE_TOL_M = 1e-4
 
@@ -385,11 +386,14 @@ def run(out_dir: Path, *, seed: int, quick: bool, progress: Progress) -> Experim
                 f"{all(r['safety_volume_m'] > -FACE_TOL_M for r in rows)}")
     worst_held = max(r["held_ratio"] for r in rows)
     worst = max(rows, key=lambda r: r["slowdown_ratio"])
-    out.verdict("lateral_slows_down", worst_held <= SLOWDOWN_TARGET,
+    # (A wall that never stopped y has no held phase: its ratio 0 proves nothing, so it fails.)
+    held_everywhere = all(r["peak_vy_held_mps"] > 0.0 for r in rows)
+    out.verdict("lateral_slows_down", held_everywhere and worst_held <= SLOWDOWN_TARGET,
                 "y slows down while the wall blocks its path (paper: the y component decreased its "
                 "velocity until z had cleared the obstacle): peak v_y while the stop is set and the end "
                 f"effector below the top ≤ {SLOWDOWN_TARGET}× the free run's peak below the top",
-                f"worst ratio {worst_held:.3f}, paper's wall {paper['held_ratio']:.3f}; below the top "
+                f"worst ratio {worst_held:.3f}, paper's wall {paper['held_ratio']:.3f}"
+                f"{'' if held_everywhere else ' (a wall without a held phase)'}; below the top "
                 f"including after the release: worst {worst['slowdown_ratio']:.3f} (wall {worst['run']}: "
                 f"the stop released {_height_words(worst['release_m'])} the top, where the straight path "
                 "to the via-point already clears the safety volume)")

@@ -63,8 +63,8 @@ def test_quick_collision_keeps_clear_of_the_wall_and_slows_the_lateral_motion(tm
     assert row["run"] == "y465_h230" and row["success"]
     assert row["arm_clearance_m"] > 0.0 and row["ee_clearance_m"] > 0.0
     assert row["safety_volume_m"] > -1e-4  # the end effector stops on the safety volume's face
-    assert row["held_ratio"] < 0.5  # y slowed while the stop held it below the wall's top
-    assert row["peak_vy_held_mps"] <= row["peak_vy_below_mps"] and row["slowdown_ratio"] < 0.5
+    assert 0.0 < row["held_ratio"] < 0.5  # y slowed while the stop held it below the wall's top
+    assert row["slowdown_ratio"] < 0.5  # below the top, released or not: the paper's wall
     assert abs(row["release_m"]) < 2e-3  # the paper's wall: y released as z reaches the top
     assert row["peak_vy_ratio"] > 0.5  # and resumed once it had cleared it
     assert row["collision_stops"] >= 1 and row["extra_s"] > 0.0
