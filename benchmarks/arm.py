@@ -137,11 +137,12 @@ def bench_tick_cost(n: int) -> dict[str, Any]:
     import zenoh
 
     from services.arm.sim import ArmSim, ArmSimConfig
+    from services.arm.state_encoder import CompiledStateEncoder
     from services.bus.config import ZenohConfig
     from services.bus.messages import Keys
     from services.bus.runtime import open_session
     from services.robot.model import RobotModel
-    from services.robot.protocol import Command, CommandMode, state_message
+    from services.robot.protocol import Command, CommandMode
 
     robot = RobotModel.load()
     sim = ArmSim(robot, ArmSimConfig())
@@ -153,7 +154,7 @@ def bench_tick_cost(n: int) -> dict[str, Any]:
         express=True,
         priority=zenoh.Priority.REAL_TIME,
     )
-    names = list(robot.joint_names)
+    encoder = CompiledStateEncoder(robot.joint_names, "base", 0.002)  # the arm service's
     quat = sim.snapshot().ee.quat_xyzw.copy()
     prep, crit, enc, put = (np.empty(n) for _ in range(4))
     clock = time.perf_counter_ns
@@ -166,7 +167,7 @@ def bench_tick_cost(n: int) -> dict[str, Any]:
         sim.submit(Command(sim.tick, CommandMode.CARTESIAN, acc, quat))
         snap = sim.step()
         t2 = clock()
-        payload = state_message(snap, names, "base", 0.002).SerializeToString()
+        payload = encoder.encode(snap)
         t3 = clock()
         pub.put(payload)
         t4 = clock()

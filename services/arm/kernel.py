@@ -10,7 +10,11 @@ times its warm time. Here each phase of the tick is one compiled call on plain l
 * :func:`ik_finish`: the orientation PD (``log₃(R_ref Rᵀ)``) and ``q̈ = Jᵀ K b + p``;
 * :func:`accel_bounds`: the joint-acceleration interval that keeps the next state within the
   position, velocity and acceleration limits;
-* :func:`bound_and_integrate`: the clamps and one semi-implicit Euler step.
+* :func:`bound_and_integrate`: the clamps and one semi-implicit Euler step;
+* :func:`chain_kinematics`: for a serial chain of 1-DoF joints (the Panda and most arms), the
+  end effector's placement, quaternion, Jacobian, twist, drift ``J̇q̇`` and acceleration in one
+  pass, where Pinocchio needs six calls and the glue between them
+  (:class:`services.arm.sim.SerialChain` extracts the chain from the Pinocchio model).
 
 The equations are documented where they are used (:mod:`services.arm.controller`). Every
 function takes its outputs as preallocated arrays. IEEE semantics are kept (no fast-math):
@@ -267,6 +271,308 @@ def bound_and_integrate(
     return flags
 
 
+#: Joint kinds of :func:`chain_kinematics` (the Pinocchio joint models they stand for).
+REVOLUTE_X, REVOLUTE_Y, REVOLUTE_Z, REVOLUTE, PRISMATIC = 0, 1, 2, 3, 4
+#: Slices of :func:`chain_kinematics`'s output (the Jacobian follows at 34).
+CHAIN_LAYOUT = {"position": (0, 3), "quat_xyzw": (3, 7), "twist": (7, 13), "acceleration": (13, 19),
+                "drift": (19, 25), "rotation": (25, 34)}
+CHAIN_JACOBIAN = 34
+
+
+@njit(**_JIT)
+def chain_kinematics(
+    kind: np.ndarray, axis: np.ndarray, joint_R: np.ndarray, joint_p: np.ndarray,
+    ee_R: np.ndarray, ee_p: np.ndarray, n_ee: int,
+    q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, out: np.ndarray,
+) -> None:
+    """End-effector kinematics of a serial chain of ``n`` 1-DoF joints at ``(q, dq, ddq)`` (n,).
+
+    Joint ``i`` sits at ``joint_R[i] (3, 3), joint_p[i] (3,)`` [m] in the frame of joint
+    ``i − 1`` (the base for ``i = 0``) and moves by ``q[i]`` about (``REVOLUTE*``, rad) or along
+    (``PRISMATIC``, m) its unit ``axis[i]`` (3,), given in its own frame; the end-effector frame
+    is ``ee_R, ee_p`` in the frame of joint ``n_ee − 1`` (joints from ``n_ee`` on do not move it).
+
+    Fills ``out (34 + 6 n,)``: ``[0:3]`` position [m], ``[3:7]`` quaternion (x, y, z, w) with
+    ``w ≥ 0``, ``[7:13]`` twist [linear; angular] (m/s, rad/s), ``[13:19]`` the acceleration
+    ``J q̈ + J̇q̇`` (m/s², rad/s²), ``[19:25]`` the drift ``J̇q̇``, ``[25:34]`` the rotation ``R``
+    (3, 3) and ``[34:]`` the Jacobian ``J`` (6, n), row-major (:data:`CHAIN_LAYOUT`; all in the
+    base frame, at the end effector's origin:
+    Pinocchio's ``LOCAL_WORLD_ALIGNED``; the accelerations are classical, not spatial).
+
+    The Jacobian's column for a revolute joint with world axis ``z`` at ``o`` is
+    ``[z × (p − o); z]``, for a prismatic one ``[z; 0]``; the axis turns with the links before
+    it (``ż = ω_before × z``), so ``J̇q̇`` sums ``(ż × (p − o) + z × (ṗ − ȯ)) q̇`` and ``ż q̇``
+    (revolute) or ``ż q̇`` (prismatic) over the joints.
+    """
+    n = q.shape[0]
+    z = np.zeros((n, 3))
+    o = np.zeros((n, 3))
+    Rp = np.eye(3)
+    pp = np.zeros(3)
+    Rj = np.empty((3, 3))
+    for i in range(n_ee):
+        # Joint i's frame before its motion: parent placement times the joint placement.
+        for r in range(3):
+            for c in range(3):
+                Rj[r, c] = (Rp[r, 0] * joint_R[i, 0, c] + Rp[r, 1] * joint_R[i, 1, c]
+                            + Rp[r, 2] * joint_R[i, 2, c])
+        for r in range(3):
+            o[i, r] = Rp[r, 0] * joint_p[i, 0] + Rp[r, 1] * joint_p[i, 1] + Rp[r, 2] * joint_p[i, 2] + pp[r]
+            z[i, r] = Rj[r, 0] * axis[i, 0] + Rj[r, 1] * axis[i, 1] + Rj[r, 2] * axis[i, 2]
+        k = kind[i]
+        if k == PRISMATIC:
+            for r in range(3):
+                pp[r] = o[i, r] + z[i, r] * q[i]
+                for c in range(3):
+                    Rp[r, c] = Rj[r, c]
+            continue
+        for r in range(3):
+            pp[r] = o[i, r]
+        s, cq = math.sin(q[i]), math.cos(q[i])
+        if k == REVOLUTE:
+            # Rodrigues: R = I + s K + (1 − c) K² for the unit axis a (K = [a]×).
+            ax, ay, az = axis[i, 0], axis[i, 1], axis[i, 2]
+            v = 1.0 - cq
+            M = np.empty((3, 3))
+            M[0, 0] = cq + v * ax * ax
+            M[0, 1] = v * ax * ay - s * az
+            M[0, 2] = v * ax * az + s * ay
+            M[1, 0] = v * ax * ay + s * az
+            M[1, 1] = cq + v * ay * ay
+            M[1, 2] = v * ay * az - s * ax
+            M[2, 0] = v * ax * az - s * ay
+            M[2, 1] = v * ay * az + s * ax
+            M[2, 2] = cq + v * az * az
+            for r in range(3):
+                for c in range(3):
+                    Rp[r, c] = Rj[r, 0] * M[0, c] + Rj[r, 1] * M[1, c] + Rj[r, 2] * M[2, c]
+        else:
+            # About a coordinate axis: columns a, b of the frame turn by q, the third stays.
+            a = (k + 1) % 3
+            b = (k + 2) % 3
+            for r in range(3):
+                ca, cb = Rj[r, a], Rj[r, b]
+                Rp[r, a] = cq * ca + s * cb
+                Rp[r, b] = cq * cb - s * ca
+                Rp[r, k] = Rj[r, k]
+    R = np.empty((3, 3))
+    p = np.empty(3)
+    for r in range(3):
+        for c in range(3):
+            R[r, c] = Rp[r, 0] * ee_R[0, c] + Rp[r, 1] * ee_R[1, c] + Rp[r, 2] * ee_R[2, c]
+        p[r] = Rp[r, 0] * ee_p[0] + Rp[r, 1] * ee_p[1] + Rp[r, 2] * ee_p[2] + pp[r]
+    # Jacobian (6, n), base frame at the end effector's origin.
+    J = out[34:].reshape(6, n)
+    J[:, :] = 0.0
+    for i in range(n_ee):
+        if kind[i] == PRISMATIC:
+            for r in range(3):
+                J[r, i] = z[i, r]
+        else:
+            dx, dy, dz = p[0] - o[i, 0], p[1] - o[i, 1], p[2] - o[i, 2]
+            J[0, i] = z[i, 1] * dz - z[i, 2] * dy
+            J[1, i] = z[i, 2] * dx - z[i, 0] * dz
+            J[2, i] = z[i, 0] * dy - z[i, 1] * dx
+            for r in range(3):
+                J[3 + r, i] = z[i, r]
+    twist = np.zeros(6)
+    for r in range(6):
+        t = 0.0
+        for i in range(n_ee):
+            t += J[r, i] * dq[i]
+        twist[r] = t
+    # Drift J̇q̇: the angular velocity and the velocity of each joint's origin, joint by joint.
+    drift = np.zeros(6)
+    w = np.zeros(3)  # angular velocity of the link before joint i
+    for i in range(n_ee):
+        vo = np.zeros(3)  # velocity of joint i's origin (a point of the link before it)
+        for j in range(i):
+            if kind[j] == PRISMATIC:
+                for r in range(3):
+                    vo[r] += z[j, r] * dq[j]
+            else:
+                dx, dy, dz = o[i, 0] - o[j, 0], o[i, 1] - o[j, 1], o[i, 2] - o[j, 2]
+                vo[0] += (z[j, 1] * dz - z[j, 2] * dy) * dq[j]
+                vo[1] += (z[j, 2] * dx - z[j, 0] * dz) * dq[j]
+                vo[2] += (z[j, 0] * dy - z[j, 1] * dx) * dq[j]
+        zd0 = w[1] * z[i, 2] - w[2] * z[i, 1]
+        zd1 = w[2] * z[i, 0] - w[0] * z[i, 2]
+        zd2 = w[0] * z[i, 1] - w[1] * z[i, 0]
+        qd = dq[i]
+        if kind[i] == PRISMATIC:
+            drift[0] += zd0 * qd
+            drift[1] += zd1 * qd
+            drift[2] += zd2 * qd
+            continue
+        dx, dy, dz = p[0] - o[i, 0], p[1] - o[i, 1], p[2] - o[i, 2]
+        ex, ey, ez = twist[0] - vo[0], twist[1] - vo[1], twist[2] - vo[2]
+        drift[0] += (zd1 * dz - zd2 * dy + z[i, 1] * ez - z[i, 2] * ey) * qd
+        drift[1] += (zd2 * dx - zd0 * dz + z[i, 2] * ex - z[i, 0] * ez) * qd
+        drift[2] += (zd0 * dy - zd1 * dx + z[i, 0] * ey - z[i, 1] * ex) * qd
+        drift[3] += zd0 * qd
+        drift[4] += zd1 * qd
+        drift[5] += zd2 * qd
+        for r in range(3):
+            w[r] += z[i, r] * qd
+    # Quaternion of R (the largest-pivot conversion), w >= 0.
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    quat = np.empty(4)
+    if tr > 0.0:
+        t = math.sqrt(tr + 1.0)
+        quat[3] = 0.5 * t
+        t = 0.5 / t
+        quat[0] = (R[2, 1] - R[1, 2]) * t
+        quat[1] = (R[0, 2] - R[2, 0]) * t
+        quat[2] = (R[1, 0] - R[0, 1]) * t
+    else:
+        a = 0
+        if R[1, 1] > R[0, 0]:
+            a = 1
+        if R[2, 2] > R[a, a]:
+            a = 2
+        b = (a + 1) % 3
+        c = (b + 1) % 3
+        t = math.sqrt(R[a, a] - R[b, b] - R[c, c] + 1.0)
+        quat[a] = 0.5 * t
+        t = 0.5 / t
+        quat[3] = (R[c, b] - R[b, c]) * t
+        quat[b] = (R[b, a] + R[a, b]) * t
+        quat[c] = (R[c, a] + R[a, c]) * t
+    if quat[3] < 0.0:
+        for r in range(4):
+            quat[r] = -quat[r]
+    for r in range(3):
+        out[r] = p[r]
+    for r in range(4):
+        out[3 + r] = quat[r]
+    for r in range(6):
+        out[7 + r] = twist[r]
+        t = drift[r]
+        for i in range(n_ee):
+            t += J[r, i] * ddq[i]
+        out[13 + r] = t
+        out[19 + r] = drift[r]
+    for r in range(3):
+        for c in range(3):
+            out[25 + 3 * r + c] = R[r, c]
+
+
+@njit(**_JIT)
+def _put_varint(buf: np.ndarray, at: int, value: int) -> int:
+    """Write ``value`` (uint64 bits) as a protobuf varint at ``buf[at]``; returns the end."""
+    v = np.uint64(value)
+    while v >= np.uint64(0x80):
+        buf[at] = np.uint8((v & np.uint64(0x7F)) | np.uint64(0x80))
+        v >>= np.uint64(7)
+        at += 1
+    buf[at] = np.uint8(v)
+    return at + 1
+
+
+@njit(**_JIT)
+def _put_double(buf: np.ndarray, at: int, x: float) -> int:
+    """Write ``x`` as 8 little-endian bytes at ``buf[at]``; returns the end."""
+    bits = np.array([x]).view(np.uint64)[0]
+    for i in range(8):
+        buf[at + i] = np.uint8((bits >> np.uint64(8 * i)) & np.uint64(0xFF))
+    return at + 8
+
+
+@njit(**_JIT)
+def _is_set(x: float) -> bool:
+    """Whether proto3 serialises a double field holding ``x``: any bit set (``-0.0`` too)."""
+    return x != 0.0 or math.copysign(1.0, x) < 0.0
+
+
+@njit(**_JIT)
+def _put_doubles_message(
+    buf: np.ndarray, at: int, field: int, values: np.ndarray, start: int, count: int
+) -> int:
+    """A present sub-message of ``count`` double fields numbered 1… (``Vec3``, ``Quat``) holding
+    ``values[start:start + count]``; returns the end."""
+    size = 0
+    for i in range(count):
+        if _is_set(values[start + i]):
+            size += 9
+    at = _put_varint(buf, at, (field << 3) | 2)
+    at = _put_varint(buf, at, size)
+    for i in range(count):
+        x = values[start + i]
+        if _is_set(x):
+            buf[at] = np.uint8(((i + 1) << 3) | 1)
+            at = _put_double(buf, at + 1, x)
+    return at
+
+
+@njit(**_JIT)
+def _put_packed(buf: np.ndarray, at: int, field: int, values: np.ndarray) -> int:
+    """A packed ``repeated double`` field (omitted when empty); returns the end."""
+    n = values.shape[0]
+    if n == 0:
+        return at
+    at = _put_varint(buf, at, (field << 3) | 2)
+    at = _put_varint(buf, at, 8 * n)
+    for i in range(n):
+        at = _put_double(buf, at, values[i])
+    return at
+
+
+@njit(**_JIT)
+def encode_arm_state(
+    buf: np.ndarray, names: np.ndarray, frame: np.ndarray, period: np.ndarray, time_ns: int, tick: int,
+    q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, ee: np.ndarray,
+    braking: bool, watchdog_tripped: bool, rejected_commands: int,
+) -> int:
+    """Serialise an ``ArmState`` into ``buf`` (uint8, large enough); returns its length.
+
+    The bytes equal protobuf's ``SerializeToString`` of the same message (fields in number
+    order, proto3 scalars at their zero value omitted, every sub-message present):
+    ``stamp_ns = sim_time_ns = time_ns`` [ns], ``tick``, the pre-serialised ``joint_names``
+    field(s) ``names``, ``q, dq, ddq`` (n,), ``ee (19,)`` = position (3,) [m], quaternion
+    (x, y, z, w), linear and angular velocity (3,) each, linear and angular acceleration (3,)
+    each (fields 8–13 in that order), the pre-serialised ``frame_id`` field ``frame``, the
+    flags and the counter, and the pre-serialised ``dt_s`` field ``period`` (uint8 arrays; empty
+    for a field at its zero value).
+    """
+    at = 0
+    if time_ns != 0:
+        at = _put_varint(buf, at, 1 << 3)
+        at = _put_varint(buf, at, time_ns)
+    if tick != 0:
+        at = _put_varint(buf, at, 2 << 3)
+        at = _put_varint(buf, at, tick)
+    if time_ns != 0:
+        at = _put_varint(buf, at, 3 << 3)
+        at = _put_varint(buf, at, time_ns)
+    for i in range(names.shape[0]):
+        buf[at + i] = names[i]
+    at += names.shape[0]
+    at = _put_packed(buf, at, 5, q)
+    at = _put_packed(buf, at, 6, dq)
+    at = _put_packed(buf, at, 7, ddq)
+    at = _put_doubles_message(buf, at, 8, ee, 0, 3)
+    at = _put_doubles_message(buf, at, 9, ee, 3, 4)
+    for k in range(4):
+        at = _put_doubles_message(buf, at, 10 + k, ee, 7 + 3 * k, 3)
+    for i in range(frame.shape[0]):
+        buf[at + i] = frame[i]
+    at += frame.shape[0]
+    if braking:
+        buf[at] = 15 << 3
+        buf[at + 1] = 1
+        at += 2
+    if watchdog_tripped:
+        at = _put_varint(buf, at, 16 << 3)
+        buf[at] = 1
+        at += 1
+    if rejected_commands != 0:
+        at = _put_varint(buf, at, 17 << 3)
+        at = _put_varint(buf, at, rejected_commands)
+    for i in range(period.shape[0]):
+        buf[at + i] = period[i]
+    return at + period.shape[0]
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel for the arm's argument types."""
     n = 7
@@ -283,12 +589,22 @@ def warm_up() -> None:
     apply_bounds(vn, ones, lo, hi, flags_lo, flags_hi, np.empty(n))
     bound_and_integrate(vn, vn, vn, 0.002, ones, lo, hi, flags_lo, flags_hi, -ones, ones,
                         np.empty(n), np.empty(n), np.empty(n))
+    kind = np.full(n, REVOLUTE_Z, dtype=np.int64)
+    axes = np.zeros((n, 3))
+    axes[:, 2] = 1.0
+    out = np.empty(CHAIN_JACOBIAN + 6 * n)
+    chain_kinematics(kind, axes, np.tile(np.eye(3), (n, 1, 1)), np.zeros((n, 3)), np.eye(3), np.zeros(3), n,
+                     vn, vn, vn, out)
+    b = np.empty(0, dtype=np.uint8)
+    encode_arm_state(np.empty(1024, dtype=np.uint8), b, b, b, 1, 1, vn, vn, vn, out[:19], True, True, 1)
 
 
 __all__ = [
     "accel_bounds",
     "apply_bounds",
     "bound_and_integrate",
+    "chain_kinematics",
+    "encode_arm_state",
     "ik_finish",
     "ik_prepare",
     "log3",

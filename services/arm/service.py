@@ -49,12 +49,12 @@ import numpy as np
 
 from services.arm.config import ArmConfig
 from services.arm.sim import ArmSim
+from services.arm.state_encoder import CompiledStateEncoder
 from services.bus.messages import ArmCommand, MessageDecodeError, decode
 from services.bus.runtime import Service, ServiceApp, receive_thread_handler, run_service
 from services.robot.arm_model import ArmModel, arm_model_scene
 from services.robot.protocol import (
     CommandRejectedError,
-    StateEncoder,
     command_from_message,
     frame_transforms,
 )
@@ -189,7 +189,9 @@ class ArmService(ServiceApp):
         self._answered = -1  # highest tick for which an answer has been seen
         self._payload = b""  # the encoded current state (see _encode_current)
         self._payload_tick = -1
-        self._encoder = StateEncoder(list(self.robot.joint_names), config.arm.frame_id, self.dt_ns * 1e-9)
+        self._encoder = CompiledStateEncoder(
+            list(self.robot.joint_names), config.arm.frame_id, self.dt_ns * 1e-9
+        )
         self._tf_due_ns = -1  # sim time of the FrameTransforms to publish after the state, or -1
         self._tf_slot = -1
         self._degraded_since = 0  # perf_counter ns of the first miss of the current episode
@@ -344,8 +346,8 @@ class ArmService(ServiceApp):
 
     def _put_current(self) -> int:
         """Publish what :meth:`_encode_current` prepared; returns the ``perf_counter_ns`` time of
-        the state's ``put``. Due FrameTransforms are built after that ``put`` (the robot model
-        still holds the published state's kinematics), off the state's path."""
+        the state's ``put``. Due FrameTransforms are built after that ``put`` (the simulation
+        still holds the published state), off the state's path."""
         now = time.perf_counter_ns()
         self._state_pub.put_bytes(self._payload)
         tick = self._payload_tick
@@ -354,6 +356,7 @@ class ArmService(ServiceApp):
         self._pub_tick[slot] = tick
         self.stats.published_ticks += 1
         if self._tf_due_ns >= 0 and self._tf_pub is not None:
+            self.sim.sync_model()
             self._tf_pub.put(
                 frame_transforms(self.robot, self._frames, self._tf_due_ns, self.config.arm.frame_id)
             )

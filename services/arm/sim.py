@@ -80,6 +80,67 @@ class ArmSimConfig(Section):
         return round(self.watchdog_timeout_s * 1e9)
 
 
+_CHAIN_KINDS = {
+    "JointModelRX": kernel.REVOLUTE_X, "JointModelRY": kernel.REVOLUTE_Y,
+    "JointModelRZ": kernel.REVOLUTE_Z, "JointModelRevoluteUnaligned": kernel.REVOLUTE,
+    "JointModelPX": kernel.PRISMATIC, "JointModelPY": kernel.PRISMATIC,
+    "JointModelPZ": kernel.PRISMATIC, "JointModelPrismaticUnaligned": kernel.PRISMATIC,
+}
+_AXIS_OF = {"X": 0, "Y": 1, "Z": 2}
+
+
+@dataclass(frozen=True)
+class SerialChain:
+    """A robot model that is a serial chain of 1-DoF revolute or prismatic joints, as the
+    arguments of :func:`services.arm.kernel.chain_kinematics`: joint ``i`` (model joint
+    ``i + 1``) has ``kind[i]``, unit ``axis[i]`` (3,) in its own frame and its placement
+    ``joint_rotation[i]`` (3, 3), ``joint_translation[i]`` (3,) [m] in its parent's frame; the
+    end-effector frame is ``ee_rotation``, ``ee_translation`` in the frame of joint ``n_ee - 1``.
+    """
+
+    kind: np.ndarray
+    axis: np.ndarray
+    joint_rotation: np.ndarray
+    joint_translation: np.ndarray
+    ee_rotation: np.ndarray
+    ee_translation: np.ndarray
+    n_ee: int
+    size: int  #: length of the kernel's output (34 + 6 n)
+
+    @classmethod
+    def from_robot(cls, robot: RobotModel) -> SerialChain | None:
+        """The chain of ``robot``'s model up to its end-effector frame, or ``None`` when the
+        model is not such a chain (a tree, a multi-DoF or mimic joint: Pinocchio then)."""
+        model = robot.model
+        n = int(model.nv)
+        if model.nq != n or model.njoints != n + 1:
+            return None
+        kind = np.zeros(n, dtype=np.int64)
+        axis = np.zeros((n, 3))
+        rot = np.zeros((n, 3, 3))
+        trans = np.zeros((n, 3))
+        for i in range(1, model.njoints):
+            joint = model.joints[i]
+            name = joint.shortname()
+            serial = model.parents[i] == i - 1 and joint.idx_q == joint.idx_v == i - 1
+            if name not in _CHAIN_KINDS or not serial:
+                return None
+            kind[i - 1] = _CHAIN_KINDS[name]
+            if name.endswith("Unaligned"):
+                axis[i - 1] = np.asarray(joint.extract().axis, dtype=float)
+            else:
+                axis[i - 1, _AXIS_OF[name[-1]]] = 1.0
+            placement = model.jointPlacements[i]
+            rot[i - 1] = placement.rotation
+            trans[i - 1] = placement.translation
+        frame = model.frames[robot.ee_frame_id]
+        return cls(
+            kind, axis, rot, trans, np.ascontiguousarray(frame.placement.rotation, dtype=float),
+            np.ascontiguousarray(frame.placement.translation, dtype=float),
+            int(frame.parentJoint), kernel.CHAIN_JACOBIAN + 6 * n,
+        )
+
+
 @dataclass(frozen=True)
 class ArmSnapshot:
     """State of the arm at one tick (everything a state message carries).
@@ -96,6 +157,9 @@ class ArmSnapshot:
     ddq: np.ndarray
     ee: EEState
     braking: bool
+    #: ``(19,)`` the EE's position, quaternion, twist and acceleration back to back (``ee``'s
+    #: arrays are views of it), when the compiled kinematics made the snapshot; else ``None``.
+    ee_packed: np.ndarray | None = None
 
 
 class ArmSim:
@@ -137,6 +201,9 @@ class ArmSim:
         # Compiled (or loaded from numba's cache) here rather than at the first tick, which
         # would then take ~0.2 s (2 s on a first start after an install).
         kernel.warm_up()
+        #: The compiled kinematics when the model is a serial chain of 1-DoF joints, else None
+        #: (Pinocchio's calls then).
+        self._chain = SerialChain.from_robot(robot)
         self._refresh()
 
     # ------------------------------------------------------------------ state
@@ -157,6 +224,35 @@ class ArmSim:
         return self._snapshot
 
     def _refresh(self) -> None:
+        chain = self._chain
+        if chain is None:
+            self._refresh_pinocchio()
+            return
+        # One compiled pass (placement, quaternion, J, twist, drift, J q̈ + drift) into a fresh
+        # buffer: the snapshot's arrays are views of it, never rewritten.
+        out = np.empty(chain.size)
+        kernel.chain_kinematics(
+            chain.kind, chain.axis, chain.joint_rotation, chain.joint_translation, chain.ee_rotation,
+            chain.ee_translation, chain.n_ee, self.q, self.dq, self.ddq, out,
+        )
+        twist = out[7:13]
+        rotation = out[25:34].reshape(3, 3)
+        ee = EEState(
+            position=out[0:3],
+            quat_xyzw=out[3:7],
+            rotation=rotation,
+            linear_velocity=out[7:10],
+            angular_velocity=out[10:13],
+            linear_acceleration=out[13:16],
+            angular_acceleration=out[16:19],
+        )
+        self._snapshot = ArmSnapshot(
+            self.tick, self.time_ns, self.q, self.dq, self.ddq, ee, self.braking, out[0:19]
+        )
+        self._kin = (out[34:].reshape(6, self.robot.n), out[19:25], twist, rotation)
+        self._bounds = None
+
+    def _refresh_pinocchio(self) -> None:
         robot = self.robot
         robot.update(self.q, self.dq)
         # The Jacobian, drift and twist of this state, computed once: the snapshot and the
@@ -185,6 +281,13 @@ class ArmSim:
         self._snapshot = ArmSnapshot(self.tick, self.time_ns, self.q, self.dq, self.ddq, ee, self.braking)
         self._kin = (J, drift, twist, rotation)
         self._bounds = None
+
+    def sync_model(self) -> None:
+        """Bring the robot model's data (every link's placement) to the current state, for
+        readers of the whole model such as :func:`~services.robot.protocol.frame_transforms`:
+        the simulation itself computes only the end effector's kinematics per tick."""
+        if self._chain is not None:
+            self.robot.update(self.q, self.dq)
 
     def prepare(self) -> None:
         """Do the command-independent work for the current tick (Jacobian, damped inverse,

@@ -228,11 +228,15 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from services.arm import kernel
 from services.arm.sim import ArmSim, ArmSimConfig
+from services.arm.state_encoder import CompiledStateEncoder
 from services.robot.model import RobotModel
 from services.robot.protocol import Command, CommandMode
 
-names = ("ik_prepare", "ik_finish", "accel_bounds", "bound_and_integrate")
-sim = ArmSim(RobotModel.load(), ArmSimConfig())
+names = ("ik_prepare", "ik_finish", "accel_bounds", "bound_and_integrate", "chain_kinematics",
+         "encode_arm_state")
+robot = RobotModel.load()
+sim = ArmSim(robot, ArmSimConfig())
+encoder = CompiledStateEncoder(robot.joint_names, "base", 0.002)
 before = [len(getattr(kernel, k).signatures) for k in names]
 quat = Rotation.from_rotvec([0.1, 0.0, 0.0]).as_quat()
 for i in range(30):  # Cartesian with and without references, joint mode, braking
@@ -242,6 +246,7 @@ for i in range(30):  # Cartesian with and without references, joint mode, brakin
     elif i < 20:
         sim.submit(Command(sim.tick, CommandMode.JOINT, joint_acceleration=np.ones(7)))
     sim.step()
+    encoder.encode(sim.snapshot(), watchdog_tripped=sim.watchdog_tripped, rejected_commands=i)
 print(before, [len(getattr(kernel, k).signatures) for k in names])
 """
 
@@ -252,4 +257,174 @@ def test_the_arm_loads_each_kernel_once_before_its_first_tick() -> None:
     ~0.2-2 s."""
     out = subprocess.run([sys.executable, "-c", _LOADED_ONCE], capture_output=True, text=True,
                          check=True, cwd=Path(__file__).resolve().parents[2], timeout=120)
-    assert out.stdout.split("\n")[-2] == "[1, 1, 1, 1] [1, 1, 1, 1]", out.stdout
+    assert out.stdout.split("\n")[-2] == "[1, 1, 1, 1, 1, 1] [1, 1, 1, 1, 1, 1]", out.stdout
+
+
+# ---------------------------------------------------------------------- chain kinematics
+_CHAIN_URDF = """<robot name="chain">
+  <link name="base"/>
+  {links}
+</robot>"""
+
+
+def _joint(name: str, parent: str, child: str, kind: str, axis: str, xyz: str, rpy: str) -> str:
+    return (
+        f'<link name="{child}"/><joint name="{name}" type="{kind}"><parent link="{parent}"/>'
+        f'<child link="{child}"/><origin xyz="{xyz}" rpy="{rpy}"/><axis xyz="{axis}"/>'
+        '<limit lower="-2" upper="2" effort="1" velocity="1"/></joint>'
+    )
+
+
+def _mixed_chain_urdf(tmp_path: Path) -> Path:
+    """Every joint kind the compiled kinematics handles: revolute about x, y, z and an
+    unaligned axis, prismatic along a coordinate and an unaligned axis, with rotated
+    placements, and a fixed end-effector link."""
+    joints = [
+        ("j1", "base", "l1", "revolute", "0 0 1", "0 0 0.3", "0 0 0"),
+        ("j2", "l1", "l2", "revolute", "0 1 0", "0.05 0 0.2", "0.3 -0.2 0.1"),
+        ("j3", "l2", "l3", "prismatic", "1 0 0", "0 0.1 0.25", "0 0.4 0"),
+        ("j4", "l3", "l4", "revolute", "0.6 0 0.8", "0.1 0 0.1", "-0.5 0 0.7"),
+        ("j5", "l4", "l5", "revolute", "1 0 0", "0 -0.08 0.2", "0 0 -1.1"),
+        ("j6", "l5", "l6", "prismatic", "0 0.6 0.8", "0.02 0.03 0.1", "0.2 0.2 0.2"),
+    ]
+    links = "".join(_joint(*j) for j in joints)
+    links += ('<link name="tool"/><joint name="tool_joint" type="fixed"><parent link="l6"/>'
+              '<child link="tool"/><origin xyz="0.01 0.02 0.15" rpy="0.1 -0.3 0.5"/></joint>')
+    path = tmp_path / "chain.urdf"
+    path.write_text(_CHAIN_URDF.format(links=links))
+    return path
+
+
+def _pinocchio_ee(robot: RobotModel, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> dict[str, np.ndarray]:
+    robot.update(q, dq)
+    J, drift = robot.jacobian(), robot.drift()
+    M = robot.ee_placement()
+    xyzquat = pin.SE3ToXYZQUAT(M)
+    quat = xyzquat[3:] if xyzquat[6] >= 0 else -xyzquat[3:]
+    return {"position": xyzquat[:3], "quat_xyzw": quat, "twist": robot.ee_velocity(),
+            "acceleration": J @ ddq + drift, "drift": drift, "rotation": M.rotation.ravel(), "J": J.ravel()}
+
+
+def _chain_ee(robot: RobotModel, q: np.ndarray, dq: np.ndarray, ddq: np.ndarray) -> dict[str, np.ndarray]:
+    from services.arm.sim import SerialChain
+
+    c = SerialChain.from_robot(robot)
+    assert c is not None
+    out = np.full(c.size, np.nan)
+    kernel.chain_kinematics(c.kind, c.axis, c.joint_rotation, c.joint_translation, c.ee_rotation,
+                            c.ee_translation, c.n_ee, q, dq, ddq, out)
+    got = {k: out[a:b] for k, (a, b) in kernel.CHAIN_LAYOUT.items()}
+    got["J"] = out[kernel.CHAIN_JACOBIAN:]
+    return got
+
+
+@pytest.mark.parametrize("which", ["panda", "mixed"])
+def test_chain_kinematics_equal_pinocchio(robot: RobotModel, tmp_path: Path, which: str) -> None:
+    """Placement, quaternion (w ≥ 0), Jacobian, twist, drift J̇q̇ and J q̈ + J̇q̇ of the compiled
+    kinematics agree with Pinocchio's to rounding, over random states of the Panda and of a
+    chain with every supported joint kind."""
+    model = robot if which == "panda" else RobotModel.load(_mixed_chain_urdf(tmp_path), ee_frame="tool")
+    rng = np.random.default_rng(7)
+    for _ in range(300):
+        q = rng.uniform(model.limits.lower, model.limits.upper)
+        dq, ddq = rng.normal(0.0, 1.5, model.n), rng.normal(0.0, 5.0, model.n)
+        ref, got = _pinocchio_ee(model, q, dq, ddq), _chain_ee(model, q, dq, ddq)
+        for key, value in ref.items():
+            np.testing.assert_allclose(got[key], value, rtol=0, atol=1e-12, err_msg=key)
+
+
+def test_chain_kinematics_of_a_frame_before_the_last_joint(tmp_path: Path) -> None:
+    """An end-effector frame on an inner link: the joints after it leave it alone (zero
+    Jacobian columns) and the rest still equals Pinocchio."""
+    model = RobotModel.load(_mixed_chain_urdf(tmp_path), ee_frame="l4")
+    q, dq, ddq = np.full(model.n, 0.3), np.linspace(-1.0, 1.0, model.n), np.ones(model.n)
+    got = _chain_ee(model, q, dq, ddq)
+    ref = _pinocchio_ee(model, q, dq, ddq)
+    for key, value in ref.items():
+        np.testing.assert_allclose(got[key], value, rtol=0, atol=1e-12, err_msg=key)
+    assert not got["J"].reshape(6, model.n)[:, 4:].any()
+
+
+def test_a_model_that_is_not_a_serial_chain_uses_pinocchio(tmp_path: Path) -> None:
+    """A tree (two branches off the base) is not a serial chain: the simulation keeps
+    Pinocchio's kinematics, with the same snapshot fields."""
+    from services.arm.sim import ArmSim, ArmSimConfig, SerialChain
+
+    links = (_joint("a1", "base", "a", "revolute", "0 0 1", "0 0 0.1", "0 0 0")
+             + _joint("b1", "base", "b", "revolute", "0 1 0", "0 0.2 0.1", "0 0 0")
+             + _joint("a2", "a", "tip", "revolute", "1 0 0", "0 0 0.3", "0 0 0"))
+    path = tmp_path / "tree.urdf"
+    path.write_text(_CHAIN_URDF.format(links=links))
+    model = RobotModel.load(path, ee_frame="tip")
+    assert SerialChain.from_robot(model) is None
+    sim = ArmSim(model, ArmSimConfig(start_pose=[0.1, 0.2, 0.3]))
+    snap = sim.snapshot()
+    assert snap.ee_packed is None
+    ref = _pinocchio_ee(model, snap.q, snap.dq, snap.ddq)
+    np.testing.assert_allclose(snap.ee.position, ref["position"], atol=1e-15)
+
+
+def test_the_simulation_steps_the_same_with_compiled_and_pinocchio_kinematics(robot: RobotModel) -> None:
+    """1,000 ticks of Cartesian commands with an orientation reference: the compiled
+    kinematics and Pinocchio's give the same trajectory to rounding (the clamps and the
+    integrator amplify 1e-16 differences only slightly over a run)."""
+    from services.arm.sim import ArmSim, ArmSimConfig
+    from services.robot.protocol import Command, CommandMode
+
+    sims = [ArmSim(robot.with_own_data(), ArmSimConfig()) for _ in range(2)]
+    sims[1]._chain = None  # Pinocchio's calls
+    sims[1]._refresh()
+    quat = Rotation.from_rotvec([0.2, -0.1, 0.3]).as_quat()
+    for i in range(1000):
+        acc = np.array([0.4 * math.sin(i * 0.01), 0.3 * math.cos(i * 0.013), -0.2 * math.sin(i * 0.007)])
+        for sim in sims:
+            sim.submit(Command(sim.tick, CommandMode.CARTESIAN, acc, quat if i > 300 else None))
+            sim.step()
+    a, b = (s.snapshot() for s in sims)
+    np.testing.assert_allclose(a.q, b.q, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.dq, b.dq, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.ee.position, b.ee.position, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(a.ee.quat_xyzw, b.ee.quat_xyzw, rtol=0, atol=1e-10)
+
+
+# ---------------------------------------------------------------------- state encoder
+_F64 = st.floats(allow_nan=True, allow_infinity=True, width=64)
+_F64_OR_ZERO = st.one_of(st.sampled_from([0.0, -0.0]), _F64)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    q=st.lists(_F64_OR_ZERO, min_size=N, max_size=N),
+    ee=st.lists(_F64_OR_ZERO, min_size=19, max_size=19),
+    time_ns=st.one_of(st.just(0), st.integers(0, 2**63 - 1)),
+    tick=st.one_of(st.just(0), st.integers(0, 2**63 - 1)),
+    braking=st.booleans(),
+    watchdog=st.booleans(),
+    rejected=st.one_of(st.just(0), st.integers(0, 2**40)),
+    frame_id=st.sampled_from(["", "base", "wörld"]),
+    dt_s=st.sampled_from([0.0, 0.002, 1e-3]),
+)
+def test_the_compiled_state_encoder_equals_protobuf(
+    robot: RobotModel, q, ee, time_ns, tick, braking, watchdog, rejected, frame_id, dt_s
+) -> None:
+    """Byte for byte ``state_message(...).SerializeToString()``, zero and negative-zero
+    fields (omitted / kept as protobuf does), NaN and inf, large varints, the saturated
+    ``rejected_commands`` and empty constant fields included."""
+    from services.arm.sim import ArmSnapshot
+    from services.arm.state_encoder import CompiledStateEncoder
+    from services.robot.protocol import EEState, StateEncoder, state_message
+
+    e = np.array(ee)
+    q_arr = np.array(q)
+    ee_state = EEState(position=e[0:3], quat_xyzw=e[3:7], rotation=np.eye(3), linear_velocity=e[7:10],
+                       angular_velocity=e[10:13], linear_acceleration=e[13:16], angular_acceleration=e[16:19])
+    names = list(robot.joint_names)
+    encoder = CompiledStateEncoder(names, frame_id, dt_s)
+    for packed in (e, None):  # the compiled kinematics' buffer, or the fields one by one
+        snap = ArmSnapshot(tick, time_ns, q_arr, -q_arr, q_arr[::-1].copy(), ee_state, braking, packed)
+        got = encoder.encode(snap, watchdog_tripped=watchdog, rejected_commands=rejected)
+        want = state_message(snap, names, frame_id, dt_s, watchdog_tripped=watchdog,
+                             rejected_commands=rejected).SerializeToString()
+        assert got == want
+        assert got == StateEncoder(names, frame_id, dt_s).encode(
+            snap, watchdog_tripped=watchdog, rejected_commands=rejected)
