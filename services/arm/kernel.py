@@ -573,6 +573,165 @@ def encode_arm_state(
     return at + period.shape[0]
 
 
+#: :func:`parse_cartesian_command` found a command it does not decide: decode it the general way.
+COMMAND_SLOW = -1
+#: Bits of an accepted command's :func:`parse_cartesian_command` result.
+COMMAND_HAS_ORIENTATION, COMMAND_HAS_ANGULAR_VELOCITY = 1, 2
+_U63 = np.uint64(1) << np.uint64(63)
+
+
+@njit(**_JIT)
+def _get_varint(buf: np.ndarray, at: int) -> tuple[np.uint64, int]:
+    """The varint at ``buf[at]`` and the index after it; index -1 if it runs past the end or
+    past 10 bytes."""
+    v = np.uint64(0)
+    shift = np.uint64(0)
+    n = buf.shape[0]
+    for _ in range(10):
+        if at >= n:
+            return np.uint64(0), -1
+        b = np.uint64(buf[at])
+        at += 1
+        v |= (b & np.uint64(0x7F)) << shift
+        if b < np.uint64(0x80):
+            return v, at
+        shift += np.uint64(7)
+    return np.uint64(0), -1
+
+
+@njit(**_JIT)
+def _get_doubles(buf: np.ndarray, at: int, end: int, count: int, out: np.ndarray, start: int) -> bool:
+    """A ``Vec3``/``Quat`` body ``buf[at:end]`` into ``out[start:start + count]`` (absent fields
+    0.0): fields 1…count of wire type 1, each at most once; False for anything else."""
+    seen = 0
+    for i in range(count):
+        out[start + i] = 0.0
+    while at < end:
+        key, at = _get_varint(buf, at)
+        if at < 0:
+            return False
+        field = int(key >> np.uint64(3))
+        if (key & np.uint64(7)) != np.uint64(1) or field < 1 or field > count or (seen >> field) & 1:
+            return False
+        seen |= 1 << field
+        if at + 8 > end:
+            return False
+        out[start + field - 1] = buf[at:at + 8].view(np.float64)[0]
+        at += 8
+    return at == end
+
+
+@njit(**_JIT)
+def parse_cartesian_command(
+    buf: np.ndarray, max_linear_acceleration: float, max_angular_velocity: float,
+    quat_norm_tolerance: float, vals: np.ndarray, ints: np.ndarray,
+) -> int:
+    """Decode and check a serialised ``ArmCommand`` ``buf`` (uint8) that is a valid Cartesian
+    command in its plainest form; anything else returns :data:`COMMAND_SLOW`, for the general
+    path (protobuf's parser, ``command_from_message``, ``validate_command``) to decide.
+
+    Decided here: fields 1–8, 10, 11 each at most once with their own wire types; ``mode`` =
+    ``CARTESIAN_ACCELERATION``; ``linear_acceleration`` present; the ``Vec3``/``Quat`` bodies
+    of plain double fields; ``source`` and ``frame_id`` ASCII; ``tick`` below 2⁶³; and the
+    command passing ``validate_command`` (finite, within the bounds, the quaternion's norm
+    within the tolerance). The values are those of the general path, bit for bit:
+    ``vals (10,)`` = the linear acceleration (3,) [m/s²], the unit quaternion (x, y, z, w) with
+    ``w ≥ 0``, the angular velocity reference (3,) [rad/s]; ``ints (2,)`` = ``stamp_ns``,
+    ``tick``. Returns the bits :data:`COMMAND_HAS_ORIENTATION` and
+    :data:`COMMAND_HAS_ANGULAR_VELOCITY` (which parts of ``vals`` hold a value).
+    """
+    n = buf.shape[0]
+    at = 0
+    seen = 0
+    stamp = np.uint64(0)
+    tick = np.uint64(0)
+    mode = np.uint64(0)
+    has_w = np.uint64(0)
+    omega = np.zeros(3)
+    while at < n:
+        key, at = _get_varint(buf, at)
+        if at < 0:
+            return COMMAND_SLOW
+        field = int(key >> np.uint64(3))
+        wire = int(key & np.uint64(7))
+        if field < 1 or field > 11 or field == 9 or (seen >> field) & 1:
+            return COMMAND_SLOW
+        seen |= 1 << field
+        if field <= 4 or field == 8:
+            if wire != 0:
+                return COMMAND_SLOW
+            v, at = _get_varint(buf, at)
+            if at < 0:
+                return COMMAND_SLOW
+            if field == 1:
+                stamp = v
+            elif field == 3:
+                tick = v
+            elif field == 4:
+                mode = v
+            elif field == 8:
+                has_w = v
+            continue
+        if wire != 2:
+            return COMMAND_SLOW
+        size, at = _get_varint(buf, at)
+        if at < 0 or size > np.uint64(n - at):
+            return COMMAND_SLOW
+        end = at + int(size)
+        if field == 5:
+            ok = _get_doubles(buf, at, end, 3, vals, 0)
+        elif field == 6:
+            ok = _get_doubles(buf, at, end, 4, vals, 3)
+        elif field == 7:
+            ok = _get_doubles(buf, at, end, 3, omega, 0)
+        else:  # source, frame_id: a string (ASCII here; UTF-8 is checked by the general path)
+            ok = True
+            for i in range(at, end):
+                if buf[i] >= 0x80:
+                    ok = False
+                    break
+        if not ok:
+            return COMMAND_SLOW
+        at = end
+    if mode != np.uint64(1) or not (seen >> 5) & 1 or tick >= _U63 or has_w > np.uint64(1):
+        return COMMAND_SLOW
+    # The checks of validate_command, in its order and with its arithmetic.
+    sq = vals[0] * vals[0]
+    sq += vals[1] * vals[1]
+    sq += vals[2] * vals[2]
+    if not math.isfinite(sq) or math.sqrt(sq) > max_linear_acceleration:
+        return COMMAND_SLOW
+    flags = 0
+    if (seen >> 6) & 1:
+        sq = vals[3] * vals[3]
+        sq += vals[4] * vals[4]
+        sq += vals[5] * vals[5]
+        sq += vals[6] * vals[6]
+        if not math.isfinite(sq):
+            return COMMAND_SLOW
+        norm = math.sqrt(sq)
+        if abs(norm - 1.0) > quat_norm_tolerance:
+            return COMMAND_SLOW
+        for i in range(3, 7):
+            vals[i] = vals[i] / norm
+        if vals[6] < 0:
+            for i in range(3, 7):
+                vals[i] = -vals[i]
+        flags |= COMMAND_HAS_ORIENTATION
+    if has_w == np.uint64(1):
+        sq = omega[0] * omega[0]
+        sq += omega[1] * omega[1]
+        sq += omega[2] * omega[2]
+        if not math.isfinite(sq) or math.sqrt(sq) > max_angular_velocity:
+            return COMMAND_SLOW
+        for i in range(3):
+            vals[7 + i] = omega[i]
+        flags |= COMMAND_HAS_ANGULAR_VELOCITY
+    ints[0] = np.int64(stamp)
+    ints[1] = np.int64(tick)
+    return flags
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel for the arm's argument types."""
     n = 7
@@ -597,6 +756,8 @@ def warm_up() -> None:
                      vn, vn, vn, out)
     b = np.empty(0, dtype=np.uint8)
     encode_arm_state(np.empty(1024, dtype=np.uint8), b, b, b, 1, 1, vn, vn, vn, out[:19], True, True, 1)
+    parse_cartesian_command(np.frombuffer(b"\x20\x01", dtype=np.uint8), 1.0, 1.0, 0.1, np.empty(10),
+                            np.empty(2, dtype=np.int64))
 
 
 __all__ = [
@@ -608,6 +769,7 @@ __all__ = [
     "ik_finish",
     "ik_prepare",
     "log3",
+    "parse_cartesian_command",
     "spd_inverse",
     "warm_up",
 ]

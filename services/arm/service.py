@@ -47,6 +47,7 @@ from typing import Any
 
 import numpy as np
 
+from services.arm import kernel
 from services.arm.config import ArmConfig
 from services.arm.sim import ArmSim
 from services.arm.state_encoder import CompiledStateEncoder
@@ -54,6 +55,8 @@ from services.bus.messages import ArmCommand, MessageDecodeError, decode
 from services.bus.runtime import Service, ServiceApp, receive_thread_handler, run_service
 from services.robot.arm_model import ArmModel, arm_model_scene
 from services.robot.protocol import (
+    Command,
+    CommandMode,
     CommandRejectedError,
     command_from_message,
     frame_transforms,
@@ -193,6 +196,9 @@ class ArmService(ServiceApp):
             list(self.robot.joint_names), config.arm.frame_id, self.dt_ns * 1e-9
         )
         self._tf_due_ns = -1  # sim time of the FrameTransforms to publish after the state, or -1
+        v = section.validation
+        self._fast_limits = (v.max_linear_acceleration, v.max_angular_velocity, v.quat_norm_tolerance)
+        self._cmd_ints = np.zeros(2, dtype=np.int64)  # stamp_ns, tick of the compiled decoding
         self._tf_slot = -1
         self._degraded_since = 0  # perf_counter ns of the first miss of the current episode
         self._last_miss_ns = 0
@@ -239,6 +245,7 @@ class ArmService(ServiceApp):
                        "cell_mm": round(self.model.cell_m * 1e3, 3), "skipped": ",".join(self.model.skipped)},
             )
         self._cmd_key = self.keys.arm_command.key
+        self._cmd_encoding = self.keys.arm_command.encoding
         # On Zenoh's receive thread (no hop through a Python callback thread): see _on_sample.
         self._cmd_sub = svc.session.declare_subscriber(
             self._cmd_key, receive_thread_handler(self._on_sample)
@@ -293,19 +300,35 @@ class ArmService(ServiceApp):
             sim.drop_command()
             return -1
         self.svc.counters.add("received")
-        try:
-            msg = decode(payload, encoding, ArmCommand)
-            cmd = command_from_message(msg)  # type: ignore[arg-type]
-        except MessageDecodeError as exc:
-            sim.reject("malformed", str(exc))
-            self.svc.record_rejection(self._cmd_key, str(exc), exc.kind)
-            return -1
-        except CommandRejectedError as exc:
-            sim.reject(exc.reason, str(exc))
-            self.svc.record_rejection(self._cmd_key, str(exc), exc.reason)
-            return int(msg.tick)  # type: ignore[attr-defined]
-        tick = cmd.tick
-        stamp = int(msg.stamp_ns)  # type: ignore[attr-defined]
+        # A plain, valid Cartesian command is decoded and checked in one compiled call; anything
+        # else (or what that call does not decide) goes through protobuf and validate_command.
+        flags = kernel.COMMAND_SLOW
+        if encoding == self._cmd_encoding:
+            vals = np.empty(10)
+            flags = kernel.parse_cartesian_command(
+                np.frombuffer(payload, dtype=np.uint8), *self._fast_limits, vals, self._cmd_ints
+            )
+        if flags >= 0:
+            stamp, tick = self._cmd_ints.tolist()
+            cmd = Command(
+                tick, CommandMode.CARTESIAN, vals[0:3],
+                vals[3:7] if flags & kernel.COMMAND_HAS_ORIENTATION else None,
+                vals[7:10] if flags & kernel.COMMAND_HAS_ANGULAR_VELOCITY else None,
+            )
+        else:
+            try:
+                msg = decode(payload, encoding, ArmCommand)
+                cmd = command_from_message(msg)  # type: ignore[arg-type]
+            except MessageDecodeError as exc:
+                sim.reject("malformed", str(exc))
+                self.svc.record_rejection(self._cmd_key, str(exc), exc.kind)
+                return -1
+            except CommandRejectedError as exc:
+                sim.reject(exc.reason, str(exc))
+                self.svc.record_rejection(self._cmd_key, str(exc), exc.reason)
+                return int(msg.tick)  # type: ignore[attr-defined]
+            tick = cmd.tick
+            stamp = int(msg.stamp_ns)  # type: ignore[attr-defined]
         if tick <= sim.tick and stamp != sim.time_origin_ns + tick * self.dt_ns:
             # A command echoes the stamp of the state it answers: this one answers no state the
             # arm published (a forged, replayed or corrupted command).
@@ -314,7 +337,10 @@ class ArmService(ServiceApp):
             self.svc.record_rejection(self._cmd_key, why, "stamp")
             return -1
         before = sim.counters["rejected"]
-        sim.submit(cmd)
+        if flags >= 0:
+            sim.submit_validated(cmd)
+        else:
+            sim.submit(cmd)
         if sim.counters["rejected"] > before:
             self.svc.record_rejection(self._cmd_key, sim.last_rejection, sim.last_rejection_reason)
         if tick > self._answered:

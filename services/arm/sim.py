@@ -313,11 +313,28 @@ class ArmSim:
                 raise CommandRejectedError("tick", f"command answers future tick {cmd.tick}")
             valid = validate_command(cmd, self.robot.n, self.config.validation)
         except CommandRejectedError as exc:
-            self.counters[f"rejected_{exc.reason}"] += 1
-            self.counters["rejected"] += 1
-            self.last_rejection = str(exc)
-            self.last_rejection_reason = exc.reason
+            self._count_rejection(exc)
             return False
+        return self._accept(valid)
+
+    def submit_validated(self, valid: Command) -> bool:
+        """:meth:`submit` for a command that has passed :func:`validate_command` already (or
+        its compiled equivalent, :func:`services.arm.kernel.parse_cartesian_command`): the same
+        counters and tick checks, without validating it again."""
+        self.counters["commands_received"] += 1
+        if valid.tick > self.tick:
+            self._count_rejection(CommandRejectedError("tick", f"command answers future tick {valid.tick}"))
+            return False
+        return self._accept(valid)
+
+    def _count_rejection(self, exc: CommandRejectedError) -> None:
+        self.counters[f"rejected_{exc.reason}"] += 1
+        self.counters["rejected"] += 1
+        self.last_rejection = str(exc)
+        self.last_rejection_reason = exc.reason
+
+    def _accept(self, valid: Command) -> bool:
+        """Hold ``valid`` unless it is stale (counted); True if held."""
         if valid.tick < self._min_command_tick or (
             self._command is not None and valid.tick < self._command.tick
         ):

@@ -7,6 +7,7 @@ import math
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -428,3 +429,142 @@ def test_the_compiled_state_encoder_equals_protobuf(
         assert got == want
         assert got == StateEncoder(names, frame_id, dt_s).encode(
             snap, watchdog_tripped=watchdog, rejected_commands=rejected)
+
+
+# ---------------------------------------------------------------------- command decoding
+def _general_path(payload: bytes) -> tuple[str, Any]:
+    """What the arm's general path makes of a command: ``("accepted", (stamp, Command))`` or
+    ``("rejected", reason)``."""
+    from services.arm.controller import ValidationLimits, validate_command
+    from services.bus.messages import ArmCommand, MessageDecodeError, decode
+    from services.robot.protocol import CommandRejectedError, command_from_message
+
+    try:
+        msg = decode(payload, "application/protobuf;psm.ArmCommand", ArmCommand)
+        cmd = validate_command(command_from_message(msg), N, ValidationLimits())  # type: ignore[arg-type]
+    except MessageDecodeError:
+        return "rejected", "malformed"
+    except CommandRejectedError as exc:
+        return "rejected", exc.reason
+    return "accepted", (int(msg.stamp_ns), cmd)  # type: ignore[attr-defined]
+
+
+def _compiled_path(payload: bytes) -> tuple[int, Any]:
+    from services.arm.controller import ValidationLimits
+
+    v = ValidationLimits()
+    vals, ints = np.full(10, np.nan), np.zeros(2, dtype=np.int64)
+    flags = kernel.parse_cartesian_command(
+        np.frombuffer(payload, dtype=np.uint8), v.max_linear_acceleration, v.max_angular_velocity,
+        v.quat_norm_tolerance, vals, ints,
+    )
+    return flags, (vals, ints)
+
+
+def _same_bits(a: np.ndarray | None, b: np.ndarray | None) -> bool:
+    return (a is None and b is None) or (a is not None and b is not None and a.tobytes() == b.tobytes())
+
+
+def _check_paths_agree(payload: bytes) -> int:
+    """The compiled decoding decides only commands the general path accepts, with the same
+    values bit for bit; returns its result."""
+    flags, (vals, ints) = _compiled_path(payload)
+    if flags == kernel.COMMAND_SLOW:
+        return flags
+    verdict, detail = _general_path(payload)
+    assert verdict == "accepted", (payload.hex(), detail)
+    stamp, cmd = detail
+    assert (int(ints[0]), int(ints[1])) == (stamp, cmd.tick)
+    assert _same_bits(vals[0:3], cmd.linear_acceleration)
+    quat = vals[3:7] if flags & kernel.COMMAND_HAS_ORIENTATION else None
+    omega = vals[7:10] if flags & kernel.COMMAND_HAS_ANGULAR_VELOCITY else None
+    assert _same_bits(quat, cmd.orientation_xyzw) and _same_bits(omega, cmd.angular_velocity)
+    return flags
+
+
+_F = st.floats(allow_nan=True, allow_infinity=True, width=64)
+_SMALL = st.floats(-60.0, 60.0)
+
+
+@st.composite
+def _commands(draw: Any) -> bytes:
+    """Serialised ArmCommands: plausible Cartesian commands, their edges (limits, quaternion
+    norms, NaN, inf, negative zero), other modes, strings, goal updates, and mutations of the
+    bytes (truncation, flipped bytes, duplicated or appended fields)."""
+    from services.bus.messages import ArmCommand
+
+    m = ArmCommand(
+        stamp_ns=draw(st.integers(-(2**63), 2**63 - 1)),
+        seq=draw(st.integers(0, 2**64 - 1)),
+        tick=draw(st.one_of(st.integers(0, 2**40), st.integers(0, 2**64 - 1))),
+        mode=draw(st.sampled_from([1, 1, 1, 0, 2, 7])),
+        source=draw(st.sampled_from(["", "planner", "plännér"])),
+        frame_id=draw(st.sampled_from(["", "base"])),
+    )
+    if draw(st.integers(0, 9)):
+        a = m.linear_acceleration
+        a.x, a.y, a.z = (draw(st.one_of(_SMALL, _SMALL, _SMALL, _F, st.just(-0.0))) for _ in range(3))
+    if draw(st.booleans()):
+        axis = np.array([draw(st.floats(-1.0, 1.0)) for _ in range(3)])
+        scale = draw(st.sampled_from([1.0, 1.0, -1.0, -1.0, 1.05, 0.85, 2.0]))
+        quat = Rotation.from_rotvec(axis * 3.0).as_quat() * scale
+        if draw(st.integers(0, 9)) == 0:
+            quat[draw(st.integers(0, 3))] = draw(_F)
+        o = m.orientation_reference
+        o.x, o.y, o.z, o.w = (float(c) for c in quat)
+    if draw(st.booleans()):
+        w = m.angular_velocity_reference
+        w.x, w.y, w.z = (draw(st.one_of(st.floats(-8.0, 8.0), st.floats(-8.0, 8.0), _F)) for _ in range(3))
+    m.has_angular_velocity_reference = draw(st.booleans())
+    if draw(st.integers(0, 4)) == 0:
+        m.joint_accelerations.extend([draw(st.floats(-5.0, 5.0)) for _ in range(N)])
+    if draw(st.integers(0, 4)) == 0:
+        ref = m.goal_updates.add()
+        ref.name, ref.stamp_ns = "person", 3
+    payload = bytearray(m.SerializeToString())
+    mutation = draw(st.integers(0, 9))  # 1-4: mutated
+    if mutation == 1 and payload:
+        del payload[draw(st.integers(0, len(payload) - 1)):]
+    elif mutation == 2 and payload:
+        payload[draw(st.integers(0, len(payload) - 1))] = draw(st.integers(0, 255))
+    elif mutation == 3:
+        payload += payload[: draw(st.integers(0, len(payload)))]
+    elif mutation == 4:
+        payload += bytes(draw(st.lists(st.integers(0, 255), max_size=12)))
+    return bytes(payload)
+
+
+@settings(max_examples=3000, deadline=None)
+@given(payload=_commands())
+def test_the_compiled_command_decoding_agrees_with_the_general_path(payload: bytes) -> None:
+    """Whatever the bytes, the compiled decoding either leaves the command to protobuf and
+    ``validate_command`` or accepts it exactly as they do (same stamp, tick, vectors to the
+    bit): it never accepts what they reject."""
+    _check_paths_agree(payload)
+
+
+def test_the_compiled_command_decoding_takes_the_planners_commands() -> None:
+    """The commands a planner sends (``cartesian_command``: acceleration, orientation, angular
+    velocity, source and frame) are decided by the compiled decoding, with or without an
+    orientation reference, negative zeros and w < 0 included; what it leaves alone is left."""
+    from services.bus.messages import ArmState
+    from services.robot.protocol import cartesian_command
+
+    state = ArmState(stamp_ns=1_700_000_000_000_000_000, tick=123_456, frame_id="base")
+    quat = Rotation.from_rotvec([0.3, -2.0, 0.4]).as_quat()
+    cases = [
+        (cartesian_command(state, [0.1, -0.2, 3.0], quat, [0.5, 0.0, -0.1], seq=9, source="planner"), 3),
+        (cartesian_command(state, [0.0, -0.0, 0.0], -quat, None, source="probe"), 1),
+        (cartesian_command(state, [1.0, 2.0, 3.0]), 0),
+    ]
+    for msg, flags in cases:
+        assert _check_paths_agree(msg.SerializeToString()) == flags
+    # A joint command, a goal update, a non-ASCII source: left to the general path.
+    joint = cases[2][0]
+    joint.mode = joint.JOINT_ACCELERATION
+    joint.joint_accelerations.extend([0.0] * N)
+    with_update = cartesian_command(state, [1.0, 0.0, 0.0])
+    with_update.goal_updates.add(name="person", stamp_ns=5)
+    accented = cartesian_command(state, [1.0, 0.0, 0.0], source="plännér")
+    for msg in (joint, with_update, accented):
+        assert _compiled_path(msg.SerializeToString())[0] == kernel.COMMAND_SLOW
