@@ -229,7 +229,8 @@ class ArmSim:
             self._refresh_pinocchio()
             return
         # One compiled pass (placement, quaternion, J, twist, drift, J q̈ + drift) into a fresh
-        # buffer: the snapshot's arrays are views of it, never rewritten.
+        # buffer: the snapshot's arrays are views of it, never rewritten. The slices are
+        # kernel.CHAIN_LAYOUT's, written out (this runs every tick).
         out = np.empty(chain.size)
         kernel.chain_kinematics(
             chain.kind, chain.axis, chain.joint_rotation, chain.joint_translation, chain.ee_rotation,
@@ -249,7 +250,7 @@ class ArmSim:
         self._snapshot = ArmSnapshot(
             self.tick, self.time_ns, self.q, self.dq, self.ddq, ee, self.braking, out[0:19]
         )
-        self._kin = (out[34:].reshape(6, self.robot.n), out[19:25], twist, rotation)
+        self._kin = (out[kernel.CHAIN_JACOBIAN:].reshape(6, self.robot.n), out[19:25], twist, rotation)
         self._bounds = None
 
     def _refresh_pinocchio(self) -> None:
