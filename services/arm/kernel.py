@@ -523,7 +523,8 @@ def encode_arm_state(
     q: np.ndarray, dq: np.ndarray, ddq: np.ndarray, ee: np.ndarray,
     braking: bool, watchdog_tripped: bool, rejected_commands: int,
 ) -> int:
-    """Serialise an ``ArmState`` into ``buf`` (uint8, large enough); returns its length.
+    """Serialise an ``ArmState`` into ``buf`` (uint8); returns its length, or -1 (nothing
+    written) when ``buf`` could be too small for these arrays or ``ee`` is not (19,).
 
     The bytes equal protobuf's ``SerializeToString`` of the same message (fields in number
     order, proto3 scalars at their zero value omitted, every sub-message present):
@@ -534,6 +535,12 @@ def encode_arm_state(
     flags and the counter, and the pre-serialised ``dt_s`` field ``period`` (uint8 arrays; empty
     for a field at its zero value).
     """
+    # The largest message these arrays give: constant fields, three packed arrays (tag, 2-byte
+    # length), six sub-messages of at most 4 doubles (tag, length, 9 bytes each), the varints.
+    worst = names.shape[0] + frame.shape[0] + period.shape[0] + 6 * 38 + 48
+    worst += (q.shape[0] + dq.shape[0] + ddq.shape[0]) * 8 + 3 * 11
+    if worst > buf.shape[0] or ee.shape[0] != 19:
+        return -1
     at = 0
     if time_ns != 0:
         at = _put_varint(buf, at, 1 << 3)

@@ -33,14 +33,18 @@ class CompiledStateEncoder:
         self._frame = _field_bytes(frame_id=frame_id)
         self._period = _field_bytes(dt_s=dt_s)
         n = len(joint_names)
-        # Fixed parts + three packed (n,) doubles + six sub-messages + the varints, with room.
-        size = self._names.size + self._frame.size + self._period.size + 3 * (8 * n + 12) + 6 * 40 + 64
+        # Room for the largest message of n joints (encode_arm_state checks it at every call).
+        size = self._names.size + self._frame.size + self._period.size + 3 * (8 * n + 11) + 6 * 38 + 48
         self._buf = np.empty(size, dtype=np.uint8)
 
     def encode(
         self, snap: ArmSnapshot, *, watchdog_tripped: bool = False, rejected_commands: int = 0
     ) -> bytes:
-        """The serialised ``ArmState`` of ``snap``."""
+        """The serialised ``ArmState`` of ``snap``.
+
+        Raises:
+            ValueError: ``snap`` has more joints than the encoder was made for.
+        """
         ee = snap.ee_packed
         if ee is None:
             e = snap.ee
@@ -51,4 +55,6 @@ class CompiledStateEncoder:
             snap.q, snap.dq, snap.ddq, ee, snap.braking, watchdog_tripped,
             min(rejected_commands, _UINT32_MAX),
         )
+        if n < 0:
+            raise ValueError(f"ArmState of {snap.q.shape[0]} joints: the encoder was made for fewer")
         return self._buf[:n].tobytes()

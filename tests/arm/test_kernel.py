@@ -234,7 +234,7 @@ from services.robot.model import RobotModel
 from services.robot.protocol import Command, CommandMode
 
 names = ("ik_prepare", "ik_finish", "accel_bounds", "bound_and_integrate", "chain_kinematics",
-         "encode_arm_state")
+         "encode_arm_state", "parse_cartesian_command")
 robot = RobotModel.load()
 sim = ArmSim(robot, ArmSimConfig())
 encoder = CompiledStateEncoder(robot.joint_names, "base", 0.002)
@@ -248,6 +248,9 @@ for i in range(30):  # Cartesian with and without references, joint mode, brakin
         sim.submit(Command(sim.tick, CommandMode.JOINT, joint_acceleration=np.ones(7)))
     sim.step()
     encoder.encode(sim.snapshot(), watchdog_tripped=sim.watchdog_tripped, rejected_commands=i)
+    # As the arm service decodes a command: the payload's bytes, the validation limits (floats).
+    kernel.parse_cartesian_command(np.frombuffer(b"\\x20\\x01", dtype=np.uint8), 50.0, 10.0, 0.1,
+                                   np.empty(10), np.zeros(2, dtype=np.int64))
 print(before, [len(getattr(kernel, k).signatures) for k in names])
 """
 
@@ -258,7 +261,7 @@ def test_the_arm_loads_each_kernel_once_before_its_first_tick() -> None:
     ~0.2-2 s."""
     out = subprocess.run([sys.executable, "-c", _LOADED_ONCE], capture_output=True, text=True,
                          check=True, cwd=Path(__file__).resolve().parents[2], timeout=120)
-    assert out.stdout.split("\n")[-2] == "[1, 1, 1, 1, 1, 1] [1, 1, 1, 1, 1, 1]", out.stdout
+    assert out.stdout.split("\n")[-2] == "[1, 1, 1, 1, 1, 1, 1] [1, 1, 1, 1, 1, 1, 1]", out.stdout
 
 
 # ---------------------------------------------------------------------- chain kinematics
@@ -568,3 +571,16 @@ def test_the_compiled_command_decoding_takes_the_planners_commands() -> None:
     accented = cartesian_command(state, [1.0, 0.0, 0.0], source="plännér")
     for msg in (joint, with_update, accented):
         assert _compiled_path(msg.SerializeToString())[0] == kernel.COMMAND_SLOW
+
+
+def test_the_compiled_state_encoder_refuses_more_joints_than_it_was_made_for(robot: RobotModel) -> None:
+    """The encoder's buffer is sized for its joints: a snapshot with more raises instead of
+    writing past it (the compiled serialiser checks the room before it writes)."""
+    from services.arm.sim import ArmSim, ArmSimConfig
+    from services.arm.state_encoder import CompiledStateEncoder
+
+    snap = ArmSim(robot, ArmSimConfig()).snapshot()
+    short = CompiledStateEncoder(list(robot.joint_names)[:2], "base", 0.002)
+    with pytest.raises(ValueError, match="7 joints"):
+        short.encode(snap)
+    assert CompiledStateEncoder(robot.joint_names, "base", 0.002).encode(snap)
