@@ -20,7 +20,7 @@ Method
 - FPS = frames processed / total processing time, frames fed back to back (a saturated source).
 - Pipelines, measured in the same run and interleaved round by round (so both see the same
   machine load): ``tracker`` = the service's default pipeline (full detection on a 320-px-wide
-  copy every 10th frame, Haar ROI tracking in between); ``full-frame Haar`` = the same tracker
+  copy every 30th frame, Haar ROI tracking in between); ``full-frame Haar`` = the same tracker
   with plain full-frame Haar detection on every 640×480 frame (``detect_width = 640``,
   ``full_every = 1``, no ROI refinement) — the textbook approach.
 - Accuracy is reported alongside: RMS error of the valid goals against the path's ground truth.

@@ -132,7 +132,11 @@ class MountSection(Section):
 class FaceSection(Section):
     """``[goal_tracker.face]``: face model and the goal offset."""
 
-    width_m: float = Field(0.16, gt=0.0, le=1.0, description="nominal face (detector box) width, m")
+    width_m: float = Field(
+        0.168, gt=0.0, le=1.0,
+        description="nominal face (detector box) width, m; calibrated per detector (this: the default "
+        "Haar cascade with the default ROI settings)",
+    )
     offset_m: Vec3 = Field(
         default_factory=lambda: [0.0, 0.045, 0.0],
         description="goal = face centre + this, camera frame (x right, y down, z forward), m; default: the "
@@ -147,8 +151,8 @@ class DetectorSection(PipelineParams, HaarParams, YuNetParams):
     kind: Literal["haar", "yunet"] = Field("haar", description="face detector")
     model_path: str = Field(
         "",
-        description="model file: Haar XML (empty = OpenCV's default frontal face) or YuNet ONNX "
-        "(required for yunet)",
+        description="model file: Haar XML (empty = OpenCV's haarcascade_frontalface_alt2.xml) or "
+        "YuNet ONNX (required for yunet)",
     )
 
     def check(self) -> None:

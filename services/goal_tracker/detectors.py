@@ -25,7 +25,7 @@ from services.goal_tracker.selection import Detection, iou
 Image = NDArray[np.uint8]
 
 #: Default Haar model file (ships with opencv-python-headless).
-HAAR_DEFAULT = "haarcascade_frontalface_default.xml"
+HAAR_DEFAULT = "haarcascade_frontalface_alt2.xml"
 
 
 class FaceDetector(Protocol):
@@ -59,7 +59,7 @@ class HaarParams(Section):
     model_config = ConfigDict(frozen=True)
 
     scale_factor: float = Field(1.1, gt=1.0, le=2.0, description="Haar scale step of full detections")
-    fine_scale_factor: float = Field(1.1, gt=1.0, le=2.0, description="Haar scale step of ROI detections")
+    fine_scale_factor: float = Field(1.07, gt=1.0, le=2.0, description="Haar scale step of ROI detections")
     min_neighbors: int = Field(4, ge=0, description="Haar minNeighbors")
 
 
@@ -189,7 +189,7 @@ class PipelineParams(Section):
         description="faces wider than this are searched in an ROI at 1/2, 1/4... resolution [px]",
     )
     roi_size_range: tuple[float, float] = Field(
-        (0.6, 1.6), description="(min, max) face width in an ROI relative to the predicted width"
+        (0.75, 1.45), description="(min, max) face width in an ROI relative to the predicted width"
     )
     max_refine: int = Field(
         3, ge=0, description="how many faces of a full detection get an ROI refinement"

@@ -4,8 +4,10 @@ known 3-D path in front of a textured background, rendered with the pinhole mode
 Ground truth: a face at camera-frame position ``P = (X, Y, Z)`` (metres, the centre of the face box)
 with physical width ``W`` appears centred at pixel ``(fx X/Z + cx, fy Y/Z + cy)`` with a face-box
 width of ``fx W / Z`` pixels — exactly the model the tracker inverts, so tests can compare the
-tracker's goal with the path. The *face box* of the sprite is the box the default Haar cascade
-finds on the unscaled crop; its centre is the face centre.
+tracker's goal with the path. The *face box* of the sprite is the box OpenCV's
+``haarcascade_frontalface_default.xml`` finds on the unscaled crop; its centre is the face centre.
+(Other detectors' boxes differ by a few per cent: ``[goal_tracker.face] width_m`` is calibrated
+per detector.)
 
 Frames are a pure function of the frame time ``t`` (seconds) and the seed, so any clock (the arm's
 sim time in lockstep, or the wall clock) gives reproducible images.
@@ -29,7 +31,7 @@ Image = NDArray[np.uint8]
 #: Crop of ``skimage.data.astronaut()`` used as the face sprite: rows, cols (pixels).
 SPRITE_ROWS = (20, 230)
 SPRITE_COLS = (140, 310)
-#: Face box ``(x, y, w, h)`` inside the sprite (default Haar cascade on the unscaled crop).
+#: Face box ``(x, y, w, h)`` inside the sprite (``haarcascade_frontalface_default.xml`` on the unscaled crop).
 SPRITE_FACE_BOX = (38.0, 46.0, 95.0, 95.0)
 
 

@@ -17,6 +17,7 @@ import pytest
 from benchmarks.goal_tracker import best_lag_s
 from services.bus.config import load_config
 from services.goal_tracker.config import (
+    FaceSection,
     TrackerConfig,
     build_geometry,
     build_synthetic_camera,
@@ -36,7 +37,8 @@ WIDE = Workspace(lower=(-5, -5, -5), upper=(5, 5, 5))
 
 
 def make_tracker(intr: Intrinsics, workspace: Workspace = WIDE, **kalman: float) -> GoalTracker:
-    geo = FaceGeometry(intr, 0.16, MOUNT, OFFSET)
+    # The default detector's calibrated box width (the synthetic face's reference box is 0.16 m).
+    geo = FaceGeometry(intr, FaceSection().width_m, MOUNT, OFFSET)
     return GoalTracker(geo, DetectionPipeline(HaarDetector()), KalmanParams(**kalman), workspace)
 
 
