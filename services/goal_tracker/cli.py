@@ -71,8 +71,55 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_face_width(args: argparse.Namespace) -> int:
+    import threading
+    import time
+
+    from services.bus.config import config_from_args
+    from services.goal_tracker.calibration import CalibrationError, face_width_from_frames
+    from services.goal_tracker.config import TrackerConfig, build_tracker
+    from services.goal_tracker.service import open_capture
+    from services.goal_tracker.sources import SourceEndedError
+
+    overrides = _source_overrides(args)
+    overrides["goal_tracker.synthetic.clock"] = "wall"  # no bus here: the synthetic face on its own
+    cfg = config_from_args(TrackerConfig, args, overrides)
+    sec = cfg.goal_tracker
+    if args.frames < 1:
+        raise CalibrationError(f"--frames must be >= 1, got {args.frames}")
+    stop = threading.Event()
+    source = open_capture(sec, stop)
+    if source is None:
+        raise CalibrationError(
+            f"face-width reads a camera itself: goal_tracker.camera.source must be synthetic, "
+            f"device, file or url, not {sec.camera.source}"
+        )
+    tracker = build_tracker(sec)
+
+    def frames() -> Any:
+        deadline = time.monotonic() + args.timeout_s
+        n = 0
+        while n < args.frames and time.monotonic() < deadline:
+            try:
+                frame = source.read(min(1.0, max(0.0, deadline - time.monotonic())))
+            except SourceEndedError:
+                return
+            if frame is not None:
+                n += 1
+                yield frame.image, frame.stamp_ns
+
+    try:
+        result = face_width_from_frames(frames(), tracker, sec.camera.fx, args.distance)
+    finally:
+        stop.set()
+        source.close()
+    print(result.as_toml(), end="")
+    return 0
+
+
 def register(subparsers: Any) -> None:
-    """Add ``track`` and ``camera {synth, stream, calibrate}`` to the ``psm`` command line."""
+    """Add ``track`` and ``camera {synth, stream, calibrate, face-width}`` to the ``psm`` command
+    line."""
     from services.bus.config import add_config_arguments
 
     p = subparsers.add_parser(
@@ -96,7 +143,9 @@ def register(subparsers: Any) -> None:
     add_config_arguments(p)
     p.set_defaults(func=_cmd_track)
 
-    cam = subparsers.add_parser("camera", help="camera tools: synthetic camera, calibration")
+    cam = subparsers.add_parser(
+        "camera", help="camera tools: synthetic camera, streaming, calibration, face width"
+    )
     sub = cam.add_subparsers(dest="camera_command", metavar="CAMERA_COMMAND", required=True)
     s = sub.add_parser(
         "synth",
@@ -137,6 +186,28 @@ def register(subparsers: Any) -> None:
     c.add_argument("--rows", type=int, default=6, help="inner corners per column")
     c.add_argument("--square-m", type=float, default=0.025, help="square size, m")
     c.set_defaults(func=_cmd_calibrate)
+
+    fw = sub.add_parser(
+        "face-width",
+        help="the detector's nominal face width from a face at a known distance",
+        description="Run the configured tracker on a face held still, facing the camera, at "
+        "--distance metres along its optical axis and print [goal_tracker.face] width_m: the "
+        "width for which the tracker's depth reads that distance with this detector (each "
+        "cascade and ROI setting frames a face differently). The synthetic face at a known "
+        "depth: --source synthetic --set goal_tracker.synthetic.amplitude_m=[0,0,0] --set "
+        "goal_tracker.synthetic.centre_m=[0,0,0.5] --distance 0.5.",
+    )
+    fw.add_argument("--distance", type=float, required=True,
+                    help="the face's distance along the camera's optical axis, m")
+    fw.add_argument("--frames", type=int, default=90, help="frames to read (default 90)")
+    fw.add_argument("--timeout-s", type=float, default=30.0,
+                    help="stop reading after this long, s (default 30)")
+    fw.add_argument("--source", choices=("synthetic", "device", "file", "url"),
+                    help="frame source (goal_tracker.camera.source)")
+    fw.add_argument("--device", type=int, help="camera device index (implies --source device)")
+    fw.add_argument("--uri", help="video file or stream URL (source file / url)")
+    add_config_arguments(fw)
+    fw.set_defaults(func=_cmd_face_width)
 
 
 def main(argv: list[str] | None = None) -> int:
