@@ -230,6 +230,13 @@ class ObstacleMonitor:
                 self._held = None
                 if hit.inside:
                     out.detail = f"end effector inside the safety volume of {hit.obstacle_id}"
+                    if sec.stopping_check and not np.isfinite(hit.stop_position).any():
+                        # No axis goes deeper towards the goal, but the end effector's own path
+                        # may (its segment bends, the goal moved): an axis whose velocity goes
+                        # deeper is held where it is, as the stopping check holds it outside.
+                        deeper = stopping_check(x, v, compiled, sec.brake_decel_mps2, dt_s, horizon_s=horizon)
+                        if deeper.inside and np.isfinite(deeper.stop_position).any():
+                            hit = deeper
             elif sec.stopping_check:
                 hit = self._stopping(x, v, compiled, horizon, dt_s)
                 if hit is not None:

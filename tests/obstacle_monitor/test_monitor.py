@@ -171,6 +171,30 @@ def test_the_stopping_path_holds_an_axis_at_a_face_the_segment_to_the_goal_clear
     assert not off.predict(_state(1, (0.5, 0.40, top + 0.005), (0.0, 0.1, -0.2))).collision
 
 
+def test_inside_the_top_an_axis_sinking_deeper_is_held_though_the_goal_is_above() -> None:
+    """Just inside the wall's inflated top (z = 0.41) with the goal above and beyond it, the
+    segment to the goal leaves the volume at once: no axis goes deeper towards the goal. An end
+    effector whose own path still sinks (its z segment dips, the goal moved down) would go on
+    into the volume if nothing were held: z is held where it is (a stopping-check stop, inside),
+    and nothing is held once it rises or rests."""
+    m = _monitor(clearance=False, obstacles_file=str(WALL_FILE), margin_m=0.03, tool_radius_m=0.15)
+    m.monitor.set_goal([0.32, 0.48, 0.44])
+    top = 0.115 + 0.115 + 0.18
+    x = (0.41, 0.35, top - 1e-5)
+    pred = m.predict(_state(1, x, (0.0, 0.08, -0.008)))
+    assert pred is not None and pred.collision and pred.inside and pred.obstacle_id == "wall"
+    stop = list(pred.stop_position)
+    assert math.isnan(stop[0]) and math.isnan(stop[1]) and stop[2] == x[2]
+    for v in ((0.0, 0.08, 0.008), (0.0, 0.08, 0.0)):  # rising, or level: the path leaves
+        pred = m.predict(_state(2, x, v))
+        assert pred is not None and pred.collision and pred.inside
+        assert np.isnan(list(pred.stop_position)).all()
+    # Off: the segment to the goal alone, as before.
+    off = _monitor(clearance=False, obstacles_file=str(WALL_FILE), stopping_check=False)
+    off.monitor.set_goal([0.32, 0.48, 0.44])
+    assert np.isnan(list(off.predict(_state(1, x, (0.0, 0.08, -0.008))).stop_position)).all()
+
+
 def test_no_goal_no_segment_test() -> None:
     m = _monitor(clearance=False, obstacles_file=str(WALL_FILE))
     pred = m.predict(_state(1, (0.55, 0.26, 0.16)))
