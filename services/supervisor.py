@@ -7,8 +7,9 @@ bound to the supervisor's life: the child asks the kernel for SIGTERM when its p
 environment), so no process of a stack outlives a supervisor that was killed with SIGKILL.
 Tests and benchmarks start their processes with the same class.
 
-:class:`Supervisor` runs a :class:`~services.stack.Stack`: it starts the processes in order and
-waits for each one's liveliness token (``startup_timeout_s``), shows a live status table while
+:class:`Supervisor` runs a :class:`~services.stack.Stack`: it starts each process once those it
+``needs`` have declared their liveliness tokens (several at once where the needs allow, as docker
+compose does; ``startup_timeout_s`` each), shows a live status table while
 they run (state, message rates, CPU %, rejected counts, last error), and on SIGINT / SIGTERM /
 the end of ``duration`` stops them in reverse order and prints a summary. A process that fails
 to start is reported with the tail of its log and the whole stack shuts down; one that dies
@@ -51,6 +52,19 @@ __all__ = [
 SUPERVISOR_PID_ENV = "PSM_SUPERVISOR_PID"
 _PR_SET_PDEATHSIG = 1
 _CLK_TCK = os.sysconf("SC_CLK_TCK")
+
+
+def start_after(processes: Sequence[ProcessSpec]) -> list[tuple[ProcessSpec, frozenset[str]]]:
+    """Each process (in the stack's order) with the names of the processes that must be alive
+    before it starts: those it ``needs`` that the stack runs, or, when it lists none, every
+    process before it."""
+    names = {p.name for p in processes}
+    out: list[tuple[ProcessSpec, frozenset[str]]] = []
+    before: list[str] = []
+    for p in processes:
+        out.append((p, frozenset(n for n in p.needs if n in names) if p.needs else frozenset(before)))
+        before.append(p.name)
+    return out
 
 
 def bind_to_supervisor() -> None:
@@ -423,25 +437,13 @@ class Supervisor:
         return False
 
     def _wait_ready(self, row: _Row) -> None:
-        endpoint = self._router_endpoint(row.name) if self.session is None else None
+        """Wait until ``row``'s process (a restarted one) is alive, watching the others."""
+        if not self._until_alive(row.service, self._poll_start):
+            raise StackFailureError(self._never_alive(row))
 
-        def poll() -> None:
-            for other in self.rows:
-                if not other.gone and not other.proc.alive():
-                    raise StackFailureError(self._died(other, "exited during start-up"))
-            if self.stop_event.is_set():
-                raise StackFailureError(self._stop_reason or "stopped during start-up")
-            if self.session is None and endpoint is not None:
-                with socket.socket() as s:
-                    s.settimeout(0.2)
-                    if s.connect_ex(endpoint) == 0:
-                        self._open_session()
-
-        if not self._until_alive(row.service, poll):
-            timeout = self.cfg.stack.startup_timeout_s
-            raise StackFailureError(
-                self._died(row, f"did not declare its liveliness token '{row.service}' within {timeout:g} s")
-            )
+    def _never_alive(self, row: _Row) -> str:
+        timeout = self.cfg.stack.startup_timeout_s
+        return self._died(row, f"did not declare its liveliness token '{row.service}' within {timeout:g} s")
 
     def wait_alive(self, service: str, proc: ManagedProcess) -> None:
         """Wait until ``service`` has declared its liveliness token on the stack's prefix, for a
@@ -498,7 +500,10 @@ class Supervisor:
         return env
 
     def start(self) -> None:
-        """Start every process in order, each after the previous one is alive."""
+        """Start the processes, each once the processes it ``needs`` are alive (one that lists
+        none: once every process before it is), several at once where their needs allow, as
+        docker compose starts them; fails with the first one that dies or does not declare its
+        liveliness token within ``startup_timeout_s`` of its start."""
         here = os.sched_getaffinity(0)  # the CPUs a process's cpu_affinity may name
         for i, spec in enumerate(self.cfg.stack.processes):
             missing = sorted(set(spec.cpu_affinity) - here) if spec.enabled else []
@@ -515,23 +520,63 @@ class Supervisor:
             self._say(f"access control on: the processes' credentials are in {self.secrets_dir}")
         if not any(self._router_endpoint(p.name) for p in self.stack.processes):
             self._open_session()
-        for spec in self.stack.processes:
-            endpoint = self._router_endpoint(spec.name)
-            if endpoint is not None:
-                with socket.socket() as s:
-                    s.settimeout(0.2)
-                    if s.connect_ex(endpoint) == 0:
-                        raise StackFailureError(
-                            f"{spec.name}: tcp/{endpoint[0]}:{endpoint[1]} is already in use "
-                            "(another router running?)"
-                        )
-            proc = self._spawn(spec)
-            row = _Row(spec.name, spec.service_name, proc, ends_stack=spec.ends_stack, spec=spec)
+        waiting = start_after(self.stack.processes)
+        starting: dict[str, tuple[_Row, float]] = {}  # by name: spawned, not alive yet
+        ready: set[str] = set()
+        while waiting or starting:
+            due = [spec for spec, after in waiting if after <= ready]
+            waiting = [(spec, after) for spec, after in waiting if not after <= ready]
+            if not due and not starting:  # (the stack's check() rules this out: needs come first)
+                raise StackFailureError(f"{waiting[0][0].name} needs a process that cannot start")
+            for spec in due:
+                self._check_port_free(spec)
+                proc = self._spawn(spec)
+                row = _Row(spec.name, spec.service_name, proc, ends_stack=spec.ends_stack, spec=spec)
+                with self._lock:
+                    self.rows.append(row)
+                starting[spec.name] = (row, time.monotonic())
+            self._poll_start()
             with self._lock:
-                self.rows.append(row)
-            self._wait_ready(row)
-            if not self.live:
-                self._say(f"started {spec.name} (pid {proc.pid})")
+                alive = [name for name, (row, _) in starting.items() if row.service in self._alive]
+            for name in alive:
+                row = starting.pop(name)[0]
+                ready.add(name)
+                if not self.live:
+                    self._say(f"started {row.name} (pid {row.proc.pid})")
+            timeout = self.cfg.stack.startup_timeout_s
+            for row, t0 in starting.values():
+                if time.monotonic() - t0 > timeout:
+                    raise StackFailureError(self._never_alive(row))
+            if starting and not alive:
+                time.sleep(0.02)
+
+    def _router_accepts(self, name: str) -> tuple[str, int] | None:
+        """The endpoint of the router process ``name`` if something accepts connections on it."""
+        endpoint = self._router_endpoint(name)
+        if endpoint is None:
+            return None
+        with socket.socket() as s:
+            s.settimeout(0.2)
+            return endpoint if s.connect_ex(endpoint) == 0 else None
+
+    def _check_port_free(self, spec: ProcessSpec) -> None:
+        """A router's listening port must be free before it starts (another router running?)."""
+        endpoint = self._router_accepts(spec.name)
+        if endpoint is not None:
+            raise StackFailureError(
+                f"{spec.name}: tcp/{endpoint[0]}:{endpoint[1]} is already in use (another router running?)"
+            )
+
+    def _poll_start(self) -> None:
+        """One look during start-up: a process that exited, a stop, and (until it is open) the
+        supervisor's own session once a router of the stack accepts connections."""
+        for other in self.rows:
+            if not other.gone and not other.proc.alive():
+                raise StackFailureError(self._died(other, "exited during start-up"))
+        if self.stop_event.is_set():
+            raise StackFailureError(self._stop_reason or "stopped during start-up")
+        if self.session is None and any(self._router_accepts(row.name) for row in self.rows):
+            self._open_session()
 
     def _spawn(self, spec: ProcessSpec, *, append: bool = False) -> ManagedProcess:
         """Start ``psm <command> --config <stack file>`` of ``spec`` (its log in the run dir)."""
