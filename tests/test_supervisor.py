@@ -268,7 +268,7 @@ def test_wait_alive_names_a_process_that_exits_or_never_declares_its_token(tmp_p
 
     port = free_port()
     stack = tmp_path / "router.toml"
-    stack.write_text(_header(port, tmp_path, startup_timeout_s=1.5) + f"""[[stack.processes]]
+    stack.write_text(_header(port, tmp_path) + f"""[[stack.processes]]
 name = "router"
 command = ["serve", "router"]
 [router]
@@ -277,7 +277,8 @@ listen = ["tcp/127.0.0.1:{port}"]
     sup = Supervisor(load_stack(stack), out=io.StringIO(), live=False)
     quitter = sleeper = None
     try:
-        sup.start()
+        sup.start()  # the router, within the stack's start-up timeout (~2 s of imports on a slow host)
+        sup.cfg.stack.startup_timeout_s = 1.5  # the bound of the waits below
         quitter = ManagedProcess("quitter", [sys.executable, "-c", "print('no token'); raise SystemExit(3)"],
                                  tmp_path / "quitter.log")
         with pytest.raises(StackFailureError, match=r"quitter exited during start-up[^\n]*\n.*no token"):
