@@ -33,7 +33,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Literal, TextIO
 
 from services.stack import ProcessSpec, Stack, routed_client_env
 
@@ -422,24 +422,29 @@ class Supervisor:
         host = "127.0.0.1" if host in ("0.0.0.0", "[::]", "") else host.strip("[]")
         return host, int(port)
 
-    def _until_alive(self, service: str, poll: Callable[[], None]) -> bool:
-        """Whether ``service`` declares its liveliness token within the stack's
-        ``startup_timeout_s``; ``poll`` runs every 20 ms while it has not (it raises
-        :class:`StackFailureError` to give up: a process that died, a stop)."""
+    def _until_alive(self, service: str, poll: Callable[[], bool]) -> Literal["alive", "ended", "timeout"]:
+        """Wait for ``service``'s liveliness token, at most the stack's ``startup_timeout_s``.
+        ``poll`` runs every 20 ms while it has not come: it raises :class:`StackFailureError` to
+        give up (a process that died, a stop) and returns True when the wait is moot (the stack
+        has ended)."""
         deadline = time.monotonic() + self.cfg.stack.startup_timeout_s
         while time.monotonic() < deadline:
-            poll()
+            if poll():
+                return "ended"
             if self.session is not None:
                 with self._lock:
                     if service in self._alive:
-                        return True
+                        return "alive"
             time.sleep(0.02)
-        return False
+        return "timeout"
 
-    def _wait_ready(self, row: _Row) -> None:
-        """Wait until ``row``'s process (a restarted one) is alive, watching the others."""
-        if not self._until_alive(row.service, self._poll_start):
+    def _wait_ready(self, row: _Row) -> bool:
+        """Wait until ``row``'s process (a restarted one) is alive, watching the others; False
+        when the stack ended meanwhile (:meth:`_poll_start`)."""
+        outcome = self._until_alive(row.service, self._poll_start)
+        if outcome == "timeout":
             raise StackFailureError(self._never_alive(row))
+        return outcome == "alive"
 
     def _never_alive(self, row: _Row) -> str:
         timeout = self.cfg.stack.startup_timeout_s
@@ -451,12 +456,13 @@ class Supervisor:
         ``startup_timeout_s`` bounds the wait. Raises :class:`StackFailureError` with the tail of
         ``proc``'s log if it exits first or the time runs out."""
 
-        def poll() -> None:
+        def poll() -> bool:
             if not proc.alive():
                 raise StackFailureError(f"{proc.name} exited during start-up; last lines of "
                                         f"{proc.log_path}:\n{proc.log_tail()}")
+            return False
 
-        if not self._until_alive(service, poll):
+        if self._until_alive(service, poll) != "alive":
             timeout = self.cfg.stack.startup_timeout_s
             raise StackFailureError(f"{proc.name} did not declare its liveliness token '{service}' "
                                     f"within {timeout:g} s; last lines of {proc.log_path}:\n"
@@ -503,7 +509,8 @@ class Supervisor:
         """Start the processes, each once the processes it ``needs`` are alive (one that lists
         none: once every process before it is), several at once where their needs allow, as
         docker compose starts them; fails with the first one that dies or does not declare its
-        liveliness token within ``startup_timeout_s`` of its start."""
+        liveliness token within ``startup_timeout_s`` of its start. Returns early, the stack
+        stopping, when a process that ends the stack has already finished cleanly."""
         here = os.sched_getaffinity(0)  # the CPUs a process's cpu_affinity may name
         for i, spec in enumerate(self.cfg.stack.processes):
             missing = sorted(set(spec.cpu_affinity) - here) if spec.enabled else []
@@ -535,7 +542,8 @@ class Supervisor:
                 with self._lock:
                     self.rows.append(row)
                 starting[spec.name] = (row, time.monotonic())
-            self._poll_start()
+            if self._poll_start():
+                return  # the stack has ended (run() sees the stop)
             with self._lock:
                 alive = [name for name, (row, _) in starting.items() if row.service in self._alive]
             for name in alive:
@@ -567,16 +575,22 @@ class Supervisor:
                 f"{spec.name}: tcp/{endpoint[0]}:{endpoint[1]} is already in use (another router running?)"
             )
 
-    def _poll_start(self) -> None:
-        """One look during start-up: a process that exited, a stop, and (until it is open) the
-        supervisor's own session once a router of the stack accepts connections."""
+    def _poll_start(self) -> bool:
+        """One look while processes start (or one restarts): a process that exited, a stop, and
+        (until it is open) the supervisor's own session once a router of the stack accepts
+        connections. True when a process that ends the stack has exited with code 0: the run's
+        normal end (the stack is told to stop); any other exit is a failure."""
         for other in self.rows:
             if not other.gone and not other.proc.alive():
+                if other.ends_stack and other.proc.returncode == 0:
+                    self.stop(f"{other.name} finished")
+                    return True
                 raise StackFailureError(self._died(other, "exited during start-up"))
         if self.stop_event.is_set():
             raise StackFailureError(self._stop_reason or "stopped during start-up")
         if self.session is None and any(self._router_accepts(row.name) for row in self.rows):
             self._open_session()
+        return False
 
     def _spawn(self, spec: ProcessSpec, *, append: bool = False) -> ManagedProcess:
         """Start ``psm <command> --config <stack file>`` of ``spec`` (its log in the run dir)."""
@@ -598,8 +612,9 @@ class Supervisor:
             self._alive.discard(row.service)
             row.proc = self._spawn(row.spec, append=True)
             row.status, row.rate_base, row.cpu_base = None, None, None
-        self._wait_ready(row)
-        self._say(f"started {row.name} (pid {row.proc.pid})")
+        if self._wait_ready(row):
+            self._say(f"started {row.name} (pid {row.proc.pid})")
+        # else the task ended while it restarted: the run stops as it would have
 
     # ------------------------------------------------------------------ run
     def _check_children(self) -> None:

@@ -22,10 +22,14 @@ class _Stub:
     """What the supervisor asks of a spawned process during start-up."""
 
     def __init__(self, name: str, pid: int, log_path: Path) -> None:
-        self.name, self.pid, self.log_path, self.returncode = name, pid, log_path, None
+        self.name, self.pid, self.log_path = name, pid, log_path
+        self.returncode: int | None = None
 
     def alive(self) -> bool:
-        return True
+        return self.returncode is None
+
+    def exit(self, code: int) -> None:
+        self.returncode = code
 
     def log_tail(self, lines: int = 12) -> str:
         return ""
@@ -116,6 +120,31 @@ def _start_with_timeout(stack_path: Path, tmp_path: Path) -> None:
     sup._poll_start = lambda: None  # type: ignore[method-assign]
     sup._check_port_free = lambda spec: None  # type: ignore[method-assign]
     sup.start()
+
+
+def test_a_task_that_ends_while_a_process_restarts_ends_the_run_as_it_would_have(tmp_path: Path) -> None:
+    """The router dies and is restarted (``restart = "always"``); while its new process is
+    coming up the planner finishes its task (exit code 0, ``ends_stack``): the run stops with
+    "planner finished", not as a process that "exited during start-up"."""
+    stack = load_stack(ROOT / "configs" / "stack.toml", overrides={"stack.run_dir": str(tmp_path / "run")})
+    sup = Supervisor(stack, out=io.StringIO(), live=False)
+
+    def spawn(spec: Any, *, append: bool = False) -> _Stub:
+        if not append:  # a first start is alive at once; the router's restart never comes up
+            sup._alive.add(spec.service_name)
+        return _Stub(spec.name, 1, tmp_path / f"{spec.name}.log")
+
+    sup._spawn = spawn  # type: ignore[method-assign]
+    sup._check_port_free = lambda spec: None  # type: ignore[method-assign]
+    sup._router_accepts = lambda name: None  # type: ignore[method-assign]
+    sup.session = object()  # the supervisor's own session: its view of the tokens is sup._alive
+    sup.start()
+    rows = {r.name: r for r in sup.rows}
+    rows["router"].proc.exit(-9)
+    rows["planner"].proc.exit(0)
+    sup._check_children()
+    assert sup.stop_event.is_set() and sup._stop_reason == "planner finished"
+    assert rows["router"].restarts == 1
 
 
 def test_start_after_names_what_each_process_waits_for() -> None:
