@@ -41,6 +41,19 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(300
 SEQ_PERIOD_S = 0.005
 #: A sample put this long before the router is killed may be in transit through it [ns].
 IN_FLIGHT_NS = 20_000_000
+#: The arm holds at neutral this long after the second step [s]: both outages fall inside the
+#: task also where a restarted router takes seconds to import (the task alone takes ~17 s).
+NEUTRAL_DWELL_S = 10.0
+
+
+def _task_with_a_dwell(tmp_path: Path) -> Path:
+    """The shipped feeding task with :data:`NEUTRAL_DWELL_S` at neutral after back_to_neutral."""
+    text = (ROOT / "configs" / "feeding.toml").read_text()
+    step = 'name = "back_to_neutral"\n'
+    assert text.count(step) == 1
+    path = tmp_path / "feeding.toml"
+    path.write_text(text.replace(step, f"{step}dwell_s = {NEUTRAL_DWELL_S}\n"))
+    return path
 
 
 class _Traffic:
@@ -132,7 +145,8 @@ def _gaps(values: list[int]) -> list[tuple[int, int]]:
 def test_the_router_restarted_under_the_stack(tmp_path: Path) -> None:
     from services.bus.log import read_log, read_samples
 
-    args = up_args(tmp_path, "realtime", *LOAD_TOLERANT)
+    task = _task_with_a_dwell(tmp_path)
+    args = up_args(tmp_path, "realtime", *LOAD_TOLERANT, f'planner.task_file="{task}"')
     port = up_port(args)
     prefix = f"feed{port}"
     proc = ManagedProcess("up", psm_argv(args), tmp_path / "up.log", cwd=ROOT)
