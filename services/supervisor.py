@@ -635,6 +635,8 @@ class Supervisor:
                     raise StackFailureError(
                         self._died(row, f"died again after {row.restarts} restarts (max_restarts)"))
                 self._restart(row)
+                if self.stop_event.is_set():
+                    return  # the stack ended while it restarted (or a stop came): nothing more to act on
                 continue
             if row.spec is not None and not row.spec.required:
                 row.gone = True

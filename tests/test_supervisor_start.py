@@ -93,8 +93,9 @@ def test_a_process_that_lists_no_needs_starts_after_every_process_before_it(tmp_
     text = (ROOT / "configs" / "stack.toml").read_text()
     stack_path = tmp_path / "stack.toml"
     stack_path.write_text(re.sub(r"^needs = .*$", "", text, flags=re.MULTILINE))
-    names = [spec.name for spec in load_stack(stack_path).processes]
-    assert all(not spec.needs for spec in load_stack(stack_path).processes)
+    processes = load_stack(stack_path).processes
+    assert all(not spec.needs for spec in processes)
+    names = [spec.name for spec in processes]
     events = _start(stack_path, {"router": 3, "arm": 4, "goal_tracker": 2}, tmp_path)
     assert [(k, n) for _, k, n in events] == [(k, n) for n in names for k in ("spawn", "alive")]
 
