@@ -582,8 +582,7 @@ class Supervisor:
         normal end (the stack is told to stop); any other exit is a failure."""
         for other in self.rows:
             if not other.gone and not other.proc.alive():
-                if other.ends_stack and other.proc.returncode == 0:
-                    self.stop(f"{other.name} finished")
+                if self._finished(other):
                     return True
                 raise StackFailureError(self._died(other, "exited during start-up"))
         if self.stop_event.is_set():
@@ -617,6 +616,14 @@ class Supervisor:
         # else the task ended while it restarted: the run stops as it would have
 
     # ------------------------------------------------------------------ run
+    def _finished(self, row: _Row) -> bool:
+        """Whether ``row``'s exited process ended the run normally: an ``ends_stack`` process
+        that exited with code 0 (the task is done). Then the stack is told to stop."""
+        if row.ends_stack and row.proc.returncode == 0:
+            self.stop(f"{row.name} finished")
+            return True
+        return False
+
     def _check_children(self) -> None:
         """Act on the processes that exited: the clean end of an ``ends_stack`` process stops the
         run; one whose restart policy applies is restarted (``max_restarts`` times); one that is
@@ -624,10 +631,9 @@ class Supervisor:
         for row in self.rows:
             if row.gone or row.proc.alive():
                 continue
-            rc = row.proc.returncode
-            if row.ends_stack and rc == 0:
-                self.stop(f"{row.name} finished")
+            if self._finished(row):
                 return
+            rc = row.proc.returncode
             policy = row.spec.restart if row.spec is not None else "no"
             if policy == "always" or (policy == "on-failure" and rc != 0):
                 assert row.spec is not None
