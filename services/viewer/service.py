@@ -237,15 +237,24 @@ class ViewerService(ServiceApp):
         if batch:
             self.svc.counters.add("received", len(batch))
         # Newest first: a throttled stream forwards the newest sample of the batch; then the
-        # forwarded ones in arrival order.
+        # forwarded ones in arrival order. A stream found unsubscribed stays so for the older
+        # samples of the batch: a client subscribing meanwhile (an SDK thread) gets the stream
+        # from its next sample on, without a gap, never an older sample and then a gap.
         out: list[tuple[_Stream, Any]] = []
         streams = self._streams
+        closed: set[str] = set()
         for sample in reversed(batch):
             key = str(sample.key_expr)
+            if key in closed:
+                continue
             st = streams.get(key)
             if st is None:
                 st = self._new_stream(key, str(sample.encoding))
-            if st.latched or (st.subscribers > 0 and st.channel is not None and st.admit(now)):
+            if st.latched:
+                out.append((st, sample))
+            elif st.subscribers <= 0 or st.channel is None:
+                closed.add(key)
+            elif st.admit(now):
                 out.append((st, sample))
         for st, sample in reversed(out):
             encoding = str(sample.encoding)

@@ -22,6 +22,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -251,6 +252,54 @@ def test_the_throttle_never_exceeds_its_rate_and_restarts_after_a_pause() -> Non
     # Unthrottled.
     free = _Stream("psm/goals/x", "", True, period_ns=0)
     assert all(free.admit(t) for t in range(10))
+
+
+class _SubscribingSample:
+    """A ring sample whose key is read by the forwarding pass; reading the key of the sample
+    with tick ``subscribe_at`` subscribes a client first (as the server's thread would, mid-pass)."""
+
+    def __init__(self, viewer: Any, channel_id: int, tick: int, subscribe_at: int) -> None:
+        self._viewer, self._channel_id, self.tick, self._at = viewer, channel_id, tick, subscribe_at
+        self.encoding = "psm.ArmState"
+        self.payload = SimpleNamespace(to_bytes=lambda: state(tick).SerializeToString())
+
+    @property
+    def key_expr(self) -> str:
+        if self.tick == self._at:
+            self._viewer.subscribed(self._channel_id, +1)
+        return "psm/arm/state"
+
+
+def test_a_client_subscribing_mid_batch_gets_the_stream_from_then_on_without_a_gap() -> None:
+    """The forwarding pass takes a batch newest first; a subscription landing in the middle of
+    it must not forward the batch's older samples (the client would see tick 0, then 5, 6…)."""
+    import queue as queue_mod
+    import threading
+
+    from services.viewer.service import ViewerService
+
+    logged: list[int] = []
+    channel = SimpleNamespace(id=lambda: 7, log=lambda payload, log_time: logged.append(
+        ArmState.FromString(payload).tick))
+    viewer = ViewerService.__new__(ViewerService)
+    st = _Stream("psm/arm/state", "psm.ArmState", False, period_ns=0)
+    st.channel = channel
+    viewer._streams, viewer._by_channel, viewer._early = {st.key: st}, {7: st}, {}
+    viewer._lock, viewer._q = threading.Lock(), queue_mod.SimpleQueue()
+    viewer.config = SimpleNamespace(queue_size=64)
+    viewer.section = SimpleNamespace(log_time="receipt")
+    viewer.svc = SimpleNamespace(counters=SimpleNamespace(add=lambda *a: None))
+
+    def ring(ticks: range, subscribe_at: int) -> SimpleNamespace:
+        items = iter([_SubscribingSample(viewer, 7, t, subscribe_at) for t in ticks])
+        return SimpleNamespace(try_recv=lambda: next(items, None))
+
+    viewer._rings = [ring(range(0, 5), subscribe_at=2)]  # subscribes while tick 2 is looked at
+    viewer._drain()
+    assert logged == []  # the newer ticks 3, 4 were passed over unsubscribed: none of the batch
+    viewer._rings = [ring(range(5, 10), subscribe_at=-1)]
+    viewer._drain()
+    assert logged == [5, 6, 7, 8, 9]
 
 
 def test_rate_limits_merge_with_the_defaults_and_name_bus_types() -> None:
