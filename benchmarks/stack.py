@@ -34,10 +34,15 @@ run under it too); and a third time with the latency held and the arm alone on t
 (``cpu_affinity`` in the stack file; the null arm likewise; the timer loop, the reference for the
 arm's missed ticks, on the arm's CPU; every other process on the other CPUs).
 ``--no-latency-round`` skips both. The targets are judged on the first round (the stack file's
-defaults); the others are reported beside it.
+defaults), except (3); the others are reported beside it.
 
 Targets: (1) arm + probe: the arm ≤ 15 % of one core; (2) the whole stack ≤ 70 % of one core in
 total; (3) with the stack running, the arm's missed ticks ≤ 2× the bare timer loop's misses.
+Target (3) is judged on the counts of every round pooled, each round's arm against the timer
+loop of its own window (a 20 s window holds a handful of misses: one stall of the virtual
+machine flips a single window's ratio); the arm's published misses are split by where their
+lateness arose (``missed_by`` of the arm's statistics: asleep past the deadline, waiting for
+the step lock, stepping and publishing).
 All processes are started by :func:`start_stack`, with the supervisor of ``psm up``.
 """
 
@@ -295,7 +300,8 @@ def _run_scenario(
         "loadavg": [load_before, load_after],
         "arm": {k: arm.get(k) for k in ("ticks", "published_ticks", "published_per_s", "wall_s",
                                         "missed_ticks", "skipped_ticks", "reanchors",
-                                        "late_commands", "answered_ticks", "jitter")},
+                                        "late_commands", "answered_ticks", "jitter",
+                                        "missed_by", "misses")},
         "timer": ref,
         "logs_tail": {n: t for n, t in logs.items() if "Traceback" in t or "error" in t.lower()},
     }
@@ -374,6 +380,27 @@ def miss_ratio(scenario: dict[str, Any]) -> dict[str, Any]:
             "ok": ratio <= MISS_RATIO_TARGET}
 
 
+def pooled_miss_ratio(res: dict[str, Any], scenario: str) -> dict[str, Any] | None:
+    """:func:`miss_ratio` of the counts of ``scenario`` summed over every round run (each
+    round's arm against the timer loop of its own window), with the arm's published misses by
+    cause summed likewise; ``None`` when no round ran it."""
+    runs = [sc for key, sc in res["scenarios"].items()
+            if key.removesuffix(PINNED_SUFFIX).removesuffix(LATENCY_SUFFIX) == scenario]
+    if not runs:
+        return None
+    arm: dict[str, Any] = {"missed_ticks": 0, "published_ticks": 0, "skipped_ticks": 0}
+    timer = {"over_2ms": 0, "deadlines": 0}
+    causes: dict[str, int] = {}
+    for sc in runs:
+        for k in arm:
+            arm[k] += sc["arm"].get(k) or 0
+        for k in timer:
+            timer[k] += sc["timer"].get(k) or 0
+        for cause, n in (sc["arm"].get("missed_by") or {}).items():
+            causes[cause] = causes.get(cause, 0) + n
+    return miss_ratio({"arm": arm, "timer": timer}) | {"rounds": len(runs), "arm_missed_by": causes}
+
+
 def verdicts(res: dict[str, Any], suffix: str = "") -> dict[str, Any]:
     """The three targets, each with the figures it is judged on, for the scenarios of one round
     (``suffix`` ``""``: the stack file's defaults; ``LATENCY_SUFFIX``: the latency held)."""
@@ -403,6 +430,15 @@ LATENCY_SUFFIX = "_lat0"
 PINNED_SUFFIX = "_lat0_pinned"
 
 
+#: The arm's published missed ticks by cause (:meth:`services.arm.service.LoopStats.add_miss`).
+CAUSE_HEAD = "asleep past the deadline / waiting for the step lock / stepping and publishing"
+
+
+def _causes(arm: dict[str, Any]) -> str:
+    by = arm.get("missed_by")
+    return "–" if not by else f"{by.get('wake', 0)} / {by.get('lock', 0)} / {by.get('step', 0)}"
+
+
 def _round_lines(res: dict[str, Any], suffix: str) -> list[str]:
     """The process, arm-loop and target tables of one round of scenarios."""
     sc = res["scenarios"]
@@ -427,6 +463,8 @@ def _round_lines(res: dict[str, Any], suffix: str) -> list[str]:
             val = run["arm"].get(key)
             cells.append("–" if val is None else (f"{val:.1f}" if isinstance(val, float) else str(val)))
         lines.append(f"| {key} | {cells[0]} | {cells[1]} |")
+    lines.append(f"| published missed ticks by cause: {CAUSE_HEAD} | {_causes(a['arm'])} | "
+                 f"{_causes(b['arm'])} |")
 
     def timer_txt(t: dict[str, Any]) -> str:
         p50, worst = t.get("p50_us", float("nan")), t.get("max_us", float("nan")) / 1e3
@@ -451,12 +489,13 @@ def _round_lines(res: dict[str, Any], suffix: str) -> list[str]:
         f"| whole stack ≤ {STACK_TARGET_PCT:.0f} % of one core | "
         f"{v['stack_cpu']['value_pct']:.1f} % (same run: router + null arm + probe "
         f"{v['stack_cpu']['platform_loop_pct']} %) | {ok(v['stack_cpu']['ok'])} |",
-        f"| arm missed ticks ≤ {MISS_RATIO_TARGET:.0f}× bare timer misses (stack running) | "
+        f"| arm missed ticks ≤ {MISS_RATIO_TARGET:.0f}× bare timer misses (stack running; this window "
+        "alone, the target is judged on the rounds pooled) | "
         f"arm {m['arm_missed']} of {m['arm_ticks']} ticks, timer {m['timer_missed']} of "
         f"{m['timer_deadlines']} deadlines: ratio of rates {m['ratio']:.2f} (the control loop at "
         f"SCHED_FIFO {res['rt_priority']}, as `configs/stack.toml` deploys it) | {ok(m['ok'])} |",
         *(
-            [f"| (same, arm and probe at normal scheduling) | arm {n['arm_missed']} of "
+            [f"| (same, arm and probe at normal scheduling; this window alone) | arm {n['arm_missed']} of "
              f"{n['arm_ticks']} ticks, timer {n['timer_missed']} of {n['timer_deadlines']}: "
              f"ratio {n['ratio']:.2f} | {ok(n['ok'])} |"]
             if (n := v.get("missed_ticks_normal_scheduling")) else []
@@ -465,6 +504,37 @@ def _round_lines(res: dict[str, Any], suffix: str) -> list[str]:
         "Load average (1 min) before/after the windows: "
         + ", ".join(f"{k.removesuffix(suffix)} {sc[k]['loadavg']}" for k in cols) + ".",
     ]
+    return lines
+
+
+def _pooled_lines(res: dict[str, Any]) -> list[str]:
+    """The missed-tick target, judged on the counts of every round pooled."""
+    p = res.get("missed_ticks_pooled")
+    if not p:
+        return []
+    lines = [
+        "",
+        "### Missed ticks, every round pooled (the target is judged here)",
+        "",
+        f"The whole stack's arm against the bare timer loop of the same window, summed over the "
+        f"{p['rounds']} rounds of this run (the sections below): one 20 s window holds a handful "
+        "of misses, and a single stall of the virtual machine flips that window's ratio either way. "
+        f"The arm's published misses by cause ({CAUSE_HEAD}) say whether the loop's own work or "
+        "its waking up was late.",
+        "",
+        "| scheduling | arm missed | of ticks | by cause | timer missed | of deadlines | ratio of rates | "
+        f"≤ {MISS_RATIO_TARGET:.0f}× |",
+        "|---|---:|---:|---|---:|---:|---:|---|",
+    ]
+    for label, q in ((f"SCHED_FIFO {res['rt_priority']} (deployed)", p),
+                     ("normal", res.get("missed_ticks_pooled_normal_scheduling"))):
+        if q:
+            by = q["arm_missed_by"]
+            lines.append(
+                f"| {label} | {q['arm_missed']} | {q['arm_ticks']} | {_causes({'missed_by': by})}, "
+                f"{by.get('skipped', 0)} skipped | {q['timer_missed']} | {q['timer_deadlines']} | "
+                f"{q['ratio']:.2f} | {'**met**' if q['ok'] else '**not met**'} |"
+            )
     return lines
 
 
@@ -480,9 +550,10 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
         "docstring). CPU = utime + stime from `/proc/<pid>/stat` over the window, % of one core."
         + (f" {host_line(res['host'])}." if res.get("host") else ""),
         "",
-        "## The stack file's defaults (the targets are judged here)",
+        "## The stack file's defaults (the CPU targets are judged here)",
         "",
         *_round_lines(res, ""),
+        *_pooled_lines(res),
     ]
     if "latency_round_skipped" in res:
         why = res["latency_round_skipped"]
@@ -581,6 +652,8 @@ def main(argv: list[str] | None = None) -> int:
             )
             print(json.dumps(res["scenarios"][key + suffix]["cpu_pct"]), flush=True)
         res["verdicts" + suffix] = verdicts(res, suffix)
+    res["missed_ticks_pooled"] = pooled_miss_ratio(res, "stack")
+    res["missed_ticks_pooled_normal_scheduling"] = pooled_miss_ratio(res, "stack_normal")
     write_report(res, args.out)
     print((args.out / "stack.md").read_text())
     return 0

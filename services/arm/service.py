@@ -41,6 +41,7 @@ import json
 import queue
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -66,6 +67,10 @@ from services.threads import CpuLatencyRequest, limit_blas_threads, set_realtime
 SERVICE_NAME = "arm"
 
 _RING = 1 << 20  # timing samples kept (about 35 min at 500 Hz)
+#: Where a published missed tick's lateness arose (:meth:`LoopStats.add_miss`).
+MISS_CAUSES = ("wake", "lock", "step")
+#: Published missed ticks kept with their timing parts (the latest ones).
+MISS_RECORDS = 32
 _PUB_RING = 1 << 12  # publish times kept to match late commands to their state
 
 #: Realtime: the service stays DEGRADED until this long passes without a missed tick, s.
@@ -105,6 +110,23 @@ class LoopStats:
     latency_ns: np.ndarray = field(default_factory=lambda: np.zeros(_RING, dtype=np.int64))
     n_jitter: int = 0
     n_latency: int = 0
+    #: realtime: the published missed ticks by where their lateness arose (:meth:`add_miss`)
+    missed_by: dict[str, int] = field(default_factory=lambda: dict.fromkeys(MISS_CAUSES, 0))
+    #: realtime: the latest :data:`MISS_RECORDS` published missed ticks, ``(tick, wake, lock, step)``
+    #: [tick, ns, ns, ns]
+    misses: deque[tuple[int, int, int, int]] = field(default_factory=lambda: deque(maxlen=MISS_RECORDS))
+
+    def add_miss(self, tick: int, wake_ns: int, lock_ns: int, step_ns: int) -> None:
+        """Count a tick published more than one dt after its schedule and where its lateness
+        arose [ns]: ``wake`` from the schedule until the loop ran again (the thread asleep past
+        its deadline: woken late by the OS or the hypervisor, waiting for the interpreter lock,
+        or still busy with the tick before), ``lock`` waiting for the step lock (a command being
+        stepped on Zenoh's thread), ``step`` stepping without an answer, encoding and the
+        ``put``. The cause counted is the largest part."""
+        self.missed_ticks += 1
+        parts = (wake_ns, lock_ns, step_ns)
+        self.missed_by[MISS_CAUSES[parts.index(max(parts))]] += 1
+        self.misses.append((tick, wake_ns, lock_ns, step_ns))
 
     def add_jitter(self, ns: int) -> None:
         """Record a tick's publication lateness vs. its schedule, ns."""
@@ -138,6 +160,11 @@ class LoopStats:
             "wall_s": self.wall_s,
             "ticks_per_s": self.ticks / self.wall_s if self.wall_s > 0 else 0.0,
             "missed_ticks": self.missed_ticks,
+            "missed_by": {**self.missed_by, "skipped": self.skipped_ticks},
+            "misses": [
+                {"tick": k, "wake_us": w / 1e3, "lock_us": lk / 1e3, "step_us": st / 1e3}
+                for k, w, lk, st in self.misses
+            ],
             "skipped_ticks": self.skipped_ticks,
             "reanchors": self.reanchors,
             "published_ticks": self.published_ticks,
@@ -503,14 +530,17 @@ class ArmService(ServiceApp):
                 remaining = sched - clock()
                 if remaining > 0:
                     sleep(remaining * 1e-9)
+                woke = clock()
                 with self._lock:
+                    locked = clock()
                     if sim.tick < k:  # no answer to the last state in time
                         self._advance(k - sim.tick)
-                    late = self._put_current() - sched
+                    put = self._put_current()
                     self._published_tick = sim.tick
+                late = put - sched
                 stats.add_jitter(late)
                 if late > period:
-                    stats.missed_ticks += 1
+                    stats.add_miss(k, woke - sched, locked - woke, put - locked)
                 if self._done():
                     break
                 k += 1

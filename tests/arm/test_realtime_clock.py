@@ -155,6 +155,59 @@ def test_missed_ticks_make_the_arm_degraded_then_it_recovers(monkeypatch: pytest
     assert svc.stats.skipped_ticks >= 20
 
 
+def test_a_missed_tick_is_attributed_to_the_largest_part_of_its_lateness() -> None:
+    from services.arm.service import MISS_RECORDS, LoopStats
+
+    st = LoopStats()
+    st.add_miss(7, 3_000_000, 10_000, 50_000)  # asleep past the deadline
+    st.add_miss(8, 100_000, 4_000_000, 50_000)  # waiting for the step lock
+    st.add_miss(9, 100_000, 10_000, 2_500_000)  # stepping
+    assert st.missed_ticks == 3
+    out = st.summary()
+    assert out["missed_by"] == {"wake": 1, "lock": 1, "step": 1, "skipped": 0}
+    assert out["misses"][0] == {"tick": 7, "wake_us": 3000.0, "lock_us": 10.0, "step_us": 50.0}
+    for k in range(10, 10 + 2 * MISS_RECORDS):
+        st.add_miss(k, 3_000_000, 0, 0)
+    latest = range(10 + MISS_RECORDS, 10 + 2 * MISS_RECORDS)
+    assert [m["tick"] for m in st.summary()["misses"]] == list(latest)
+    assert st.summary()["missed_by"]["wake"] == 1 + 2 * MISS_RECORDS
+
+
+def test_the_realtime_arm_says_where_a_missed_tick_lost_its_time() -> None:
+    """A step of 6 ms on the loop's thread is a miss of cause ``step``; the step lock held for
+    12 ms by another thread (as Zenoh's thread holds it while it steps a command) is a miss of
+    cause ``lock``. (A loaded machine may add misses of cause ``wake``: only lower bounds.)"""
+    svc = _arm(dt_s=0.002, max_ticks=500)
+    sim = svc.sim
+    step = sim.step
+
+    def slow_step() -> Any:
+        if sim.tick == 100:
+            time.sleep(0.006)
+        return step()
+
+    def hold_the_lock() -> None:
+        deadline = time.monotonic() + 20.0
+        while sim.tick < 300 and time.monotonic() < deadline:
+            time.sleep(0.001)
+        with svc._lock:
+            time.sleep(0.012)
+
+    sim.step = slow_step  # type: ignore[method-assign]
+    holder = threading.Thread(target=hold_the_lock, daemon=True)
+    holder.start()
+    th = _run_in_thread(svc)
+    th.join(30)
+    holder.join(5)
+    assert not th.is_alive()
+    out = svc.stats.summary()
+    assert out["missed_by"]["step"] >= 1 and out["missed_by"]["lock"] >= 1, out["missed_by"]
+    assert any(m["step_us"] >= 5000 for m in out["misses"]), out["misses"]
+    assert any(m["lock_us"] >= 8000 for m in out["misses"]), out["misses"]
+    assert out["missed_ticks"] == sum(out["missed_by"][c] for c in ("wake", "lock", "step")) \
+        + out["skipped_ticks"]
+
+
 def test_lockstep_sim_time_starts_at_zero() -> None:
     svc = _arm(clock="lockstep", dt_s=0.002, lockstep_timeout_s=0.05)
     stamps: list[int] = []
