@@ -121,6 +121,16 @@ def timer_misses(timer: dict[str, Any]) -> int:
     return int(timer["over_2ms"] if timer["period_s"] >= 0.002 else timer["over_1ms"])
 
 
+def _missed_cell(run: dict[str, Any]) -> str:
+    """The arm's missed ticks, with the published ones by cause and the skipped ones (the arm's
+    ``missed_by``, :meth:`services.arm.service.LoopStats.add_miss`)."""
+    by = run.get("missed_by")
+    if not by:
+        return str(run["missed_ticks"])
+    return (f"{run['missed_ticks']} ({by.get('wake', 0)} / {by.get('lock', 0)} / {by.get('step', 0)}; "
+            f"{by.get('skipped', 0)})")
+
+
 def missed_ratio(run: dict[str, Any], timer: dict[str, Any]) -> float:
     """The arm's rate of missed ticks over the bare timer's rate of missed deadlines (same
     period, same run); 0 when the arm missed none, inf when only the arm missed."""
@@ -416,7 +426,8 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
         "",
         "## Closed loop over Zenoh (arm process <-> trivial controller process, loopback)",
         "",
-        "| run | scheduling | ticks | ticks/s | jitter p50 / p99 / max (µs) | missed ticks | "
+        "| run | scheduling | ticks | ticks/s | jitter p50 / p99 / max (µs) | missed ticks (by cause: "
+        "asleep past the deadline / step lock / stepping; skipped) | "
         "late cmds | state→command p50 / p99 (µs) | load before | CPU busy / steal |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
@@ -433,7 +444,7 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
             late = f"{d['late_commands']} ({100 * d['late_fraction']:.3f} %)" if realtime else "-"
             lines.append(
                 f"| {name} | {sched} | {d['ticks']} | {d['ticks_per_s']:.1f} | {jit} | "
-                f"{d['missed_ticks'] if realtime else '-'} | {late} | "
+                f"{_missed_cell(d) if realtime else '-'} | {late} | "
                 f"{lat['p50_us']:.0f} / {lat['p99_us']:.0f} | {d['loadavg_before']} | "
                 f"{d['cpu']['busy_pct']} % / {d['cpu']['steal_pct']} % |"
             )
