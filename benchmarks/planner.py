@@ -164,6 +164,12 @@ def ratio_verdict(value: float, reference: float, target: float, at_least: bool 
             "at_least": at_least, "ok": ok}
 
 
+def _miss_causes(arm: dict[str, Any]) -> str:
+    """The arm's published missed ticks by cause (its ``missed_by``), or "–" without them."""
+    by = arm.get("missed_by")
+    return "–" if not by else f"{by.get('wake', 0)} / {by.get('lock', 0)} / {by.get('step', 0)}"
+
+
 def miss_verdict(arm: Mapping[str, Any], timer: Mapping[str, Any],
                  target: float = MISS_RATIO_TARGET) -> dict[str, Any]:
     """The arm's rate of missed ticks (``missed_ticks`` over published + skipped ticks) against
@@ -1085,6 +1091,8 @@ def render_markdown(res: dict[str, Any]) -> str:
             f"| arm: missed ticks (published > 1 dt late), skipped, re-anchored | "
             f"{_f(arm.get('missed_ticks'))}, "
             f"{_f(arm.get('skipped_ticks'))}, {_f(arm.get('reanchors'))} |",
+            f"| arm: published missed ticks by cause: asleep past the deadline / waiting for the step "
+            f"lock / stepping | {_miss_causes(arm)} |",
             f"| arm: late commands (answer > 1 dt after its state) | {_f(arm.get('late_commands'))} of "
             f"{_f(arm.get('answered_ticks'))} answered |",
             f"| arm: publication jitter | {_lat(arm.get('jitter'))} |",
