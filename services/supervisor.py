@@ -857,7 +857,12 @@ def arm_line(arm: dict[str, Any]) -> str:
     jit = arm.get("jitter") or {}
     parts = [f"arm ({arm.get('clock')}): {arm.get('ticks')} ticks, {arm.get('ticks_per_s', 0):.0f}/s"]
     if arm.get("clock") == "realtime":
-        parts.append(f"missed {arm.get('missed_ticks')}, late commands {arm.get('late_commands')}, "
+        missed = f"missed {arm.get('missed_ticks')}"
+        by = arm.get("missed_by")
+        if arm.get("missed_ticks") and by:
+            missed += (f" (woke late {by.get('wake', 0)}, waited for the step lock {by.get('lock', 0)}, "
+                       f"stepping {by.get('step', 0)}; {by.get('skipped', 0)} skipped)")
+        parts.append(f"{missed}, late commands {arm.get('late_commands')}, "
                      f"publication jitter p99 {jit.get('p99_us', 0):.0f} µs")
     else:
         parts.append(f"lockstep timeouts {arm.get('lockstep_timeouts')}")
