@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.host import host_info, host_line
+from services.arm.stats import MISS_CAUSES_HEAD, miss_causes_text
 from services.bus.runtime import receive_thread_handler
 from services.supervisor import ManagedProcess, free_port, psm_argv
 
@@ -123,12 +124,11 @@ def timer_misses(timer: dict[str, Any]) -> int:
 
 def _missed_cell(run: dict[str, Any]) -> str:
     """The arm's missed ticks, with the published ones by cause and the skipped ones (the arm's
-    ``missed_by``, :meth:`services.arm.service.LoopStats.add_miss`)."""
+    ``missed_by``, :meth:`services.arm.stats.LoopStats.add_miss`)."""
     by = run.get("missed_by")
     if not by:
         return str(run["missed_ticks"])
-    return (f"{run['missed_ticks']} ({by.get('wake', 0)} / {by.get('lock', 0)} / {by.get('step', 0)}; "
-            f"{by.get('skipped', 0)})")
+    return f"{run['missed_ticks']} ({miss_causes_text(by)}; {by.get('skipped', 0)})"
 
 
 def missed_ratio(run: dict[str, Any], timer: dict[str, Any]) -> float:
@@ -427,7 +427,7 @@ def write_report(res: dict[str, Any], out: Path = RESULTS) -> None:
         "## Closed loop over Zenoh (arm process <-> trivial controller process, loopback)",
         "",
         "| run | scheduling | ticks | ticks/s | jitter p50 / p99 / max (µs) | missed ticks (by cause: "
-        "asleep past the deadline / step lock / stepping; skipped) | "
+        f"{MISS_CAUSES_HEAD}; skipped) | "
         "late cmds | state→command p50 / p99 (µs) | load before | CPU busy / steal |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]

@@ -94,6 +94,7 @@ import numpy as np
 
 from benchmarks.host import host_info, host_line
 from benchmarks.stack import zenoh_table
+from services.arm.stats import MISS_CAUSES_HEAD, miss_causes_text
 from services.supervisor import ManagedProcess, cpu_seconds, free_port, psm_argv
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -162,12 +163,6 @@ def ratio_verdict(value: float, reference: float, target: float, at_least: bool 
     ok = bool(ratio >= target) if at_least else bool(ratio <= target)
     return {"value": value, "reference": reference, "ratio": ratio, "target": target,
             "at_least": at_least, "ok": ok}
-
-
-def _miss_causes(arm: dict[str, Any]) -> str:
-    """The arm's published missed ticks by cause (its ``missed_by``), or "–" without them."""
-    by = arm.get("missed_by")
-    return "–" if not by else f"{by.get('wake', 0)} / {by.get('lock', 0)} / {by.get('step', 0)}"
 
 
 def miss_verdict(arm: Mapping[str, Any], timer: Mapping[str, Any],
@@ -1091,8 +1086,8 @@ def render_markdown(res: dict[str, Any]) -> str:
             f"| arm: missed ticks (published > 1 dt late), skipped, re-anchored | "
             f"{_f(arm.get('missed_ticks'))}, "
             f"{_f(arm.get('skipped_ticks'))}, {_f(arm.get('reanchors'))} |",
-            f"| arm: published missed ticks by cause: asleep past the deadline / waiting for the step "
-            f"lock / stepping | {_miss_causes(arm)} |",
+            f"| arm: published missed ticks by cause: {MISS_CAUSES_HEAD} | "
+            f"{miss_causes_text(arm.get('missed_by'))} |",
             f"| arm: late commands (answer > 1 dt after its state) | {_f(arm.get('late_commands'))} of "
             f"{_f(arm.get('answered_ticks'))} answered |",
             f"| arm: publication jitter | {_lat(arm.get('jitter'))} |",

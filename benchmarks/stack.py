@@ -62,6 +62,7 @@ from typing import Any
 
 from benchmarks.arm import _load, bench_timer
 from benchmarks.host import host_info, host_line
+from services.arm.stats import MISS_CAUSES_HEAD, miss_causes_text
 from services.stack import load_stack
 from services.supervisor import ManagedProcess, StackFailureError, Supervisor, cpu_seconds, free_port
 from services.threads import CpuLatencyRequest
@@ -430,15 +431,6 @@ LATENCY_SUFFIX = "_lat0"
 PINNED_SUFFIX = "_lat0_pinned"
 
 
-#: The arm's published missed ticks by cause (:meth:`services.arm.service.LoopStats.add_miss`).
-CAUSE_HEAD = "asleep past the deadline / waiting for the step lock / stepping and publishing"
-
-
-def _causes(arm: dict[str, Any]) -> str:
-    by = arm.get("missed_by")
-    return "–" if not by else f"{by.get('wake', 0)} / {by.get('lock', 0)} / {by.get('step', 0)}"
-
-
 def _round_lines(res: dict[str, Any], suffix: str) -> list[str]:
     """The process, arm-loop and target tables of one round of scenarios."""
     sc = res["scenarios"]
@@ -463,8 +455,8 @@ def _round_lines(res: dict[str, Any], suffix: str) -> list[str]:
             val = run["arm"].get(key)
             cells.append("–" if val is None else (f"{val:.1f}" if isinstance(val, float) else str(val)))
         lines.append(f"| {key} | {cells[0]} | {cells[1]} |")
-    lines.append(f"| published missed ticks by cause: {CAUSE_HEAD} | {_causes(a['arm'])} | "
-                 f"{_causes(b['arm'])} |")
+    by_a, by_b = (miss_causes_text(run["arm"].get("missed_by")) for run in (a, b))
+    lines.append(f"| published missed ticks by cause: {MISS_CAUSES_HEAD} | {by_a} | {by_b} |")
 
     def timer_txt(t: dict[str, Any]) -> str:
         p50, worst = t.get("p50_us", float("nan")), t.get("max_us", float("nan")) / 1e3
@@ -519,7 +511,7 @@ def _pooled_lines(res: dict[str, Any]) -> list[str]:
         f"The whole stack's arm against the bare timer loop of the same window, summed over the "
         f"{p['rounds']} rounds of this run (the sections below): one 20 s window holds a handful "
         "of misses, and a single stall of the virtual machine flips that window's ratio either way. "
-        f"The arm's published misses by cause ({CAUSE_HEAD}) say whether the loop's own work or "
+        f"The arm's published misses by cause ({MISS_CAUSES_HEAD}) say whether the loop's own work or "
         "its waking up was late.",
         "",
         "| scheduling | arm missed | of ticks | by cause | timer missed | of deadlines | ratio of rates | "
@@ -531,7 +523,7 @@ def _pooled_lines(res: dict[str, Any]) -> list[str]:
         if q:
             by = q["arm_missed_by"]
             lines.append(
-                f"| {label} | {q['arm_missed']} | {q['arm_ticks']} | {_causes({'missed_by': by})}, "
+                f"| {label} | {q['arm_missed']} | {q['arm_ticks']} | {miss_causes_text(by)}, "
                 f"{by.get('skipped', 0)} skipped | {q['timer_missed']} | {q['timer_deadlines']} | "
                 f"{q['ratio']:.2f} | {'**met**' if q['ok'] else '**not met**'} |"
             )

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TextIO
 
+from services.arm.stats import MISS_CAUSES_HEAD, miss_causes_text
 from services.stack import ProcessSpec, Stack, routed_client_env
 
 __all__ = [
@@ -860,8 +861,7 @@ def arm_line(arm: dict[str, Any]) -> str:
         missed = f"missed {arm.get('missed_ticks')}"
         by = arm.get("missed_by")
         if arm.get("missed_ticks") and by:
-            missed += (f" (woke late {by.get('wake', 0)}, waited for the step lock {by.get('lock', 0)}, "
-                       f"stepping {by.get('step', 0)}; {by.get('skipped', 0)} skipped)")
+            missed += f" ({MISS_CAUSES_HEAD}: {miss_causes_text(by)}; {by.get('skipped', 0)} skipped)"
         parts.append(f"{missed}, late commands {arm.get('late_commands')}, "
                      f"publication jitter p99 {jit.get('p99_us', 0):.0f} µs")
     else:

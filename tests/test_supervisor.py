@@ -329,8 +329,8 @@ def test_the_arm_line_says_where_the_missed_ticks_lost_their_time() -> None:
            "missed_by": {"wake": 2, "lock": 0, "step": 1, "skipped": 1}, "late_commands": 7,
            "jitter": {"p99_us": 180.0}, "state_to_command_latency": {"p50_us": 210.0, "p99_us": 640.0}}
     line = arm_line(arm)
-    assert ("missed 4 (woke late 2, waited for the step lock 0, stepping 1; 1 skipped), "
-            "late commands 7, publication jitter p99 180 µs") in line
+    assert ("missed 4 (asleep past the deadline / waiting for the step lock / stepping and "
+            "publishing: 2 / 0 / 1; 1 skipped), late commands 7, publication jitter p99 180 µs") in line
     # No miss: nothing to attribute; a statistics file without the causes: the count alone.
     assert "missed 0, late commands" in arm_line({**arm, "missed_ticks": 0})
     assert "missed 4, late commands" in arm_line({k: v for k, v in arm.items() if k != "missed_by"})

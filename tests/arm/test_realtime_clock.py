@@ -156,7 +156,7 @@ def test_missed_ticks_make_the_arm_degraded_then_it_recovers(monkeypatch: pytest
 
 
 def test_a_missed_tick_is_attributed_to_the_largest_part_of_its_lateness() -> None:
-    from services.arm.service import MISS_RECORDS, LoopStats
+    from services.arm.stats import MISS_RECORDS, LoopStats, miss_causes_text
 
     st = LoopStats()
     st.add_miss(7, 3_000_000, 10_000, 50_000)  # asleep past the deadline
@@ -166,6 +166,7 @@ def test_a_missed_tick_is_attributed_to_the_largest_part_of_its_lateness() -> No
     out = st.summary()
     assert out["missed_by"] == {"wake": 1, "lock": 1, "step": 1, "skipped": 0}
     assert out["misses"][0] == {"tick": 7, "wake_us": 3000.0, "lock_us": 10.0, "step_us": 50.0}
+    assert miss_causes_text(out["missed_by"]) == "1 / 1 / 1" and miss_causes_text(None) == "–"
     for k in range(10, 10 + 2 * MISS_RECORDS):
         st.add_miss(k, 3_000_000, 0, 0)
     latest = range(10 + MISS_RECORDS, 10 + 2 * MISS_RECORDS)
