@@ -61,9 +61,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from psm.errors import ParameterError, ShapeError
-from psm.pstf import K_MAX_FRACTION, k_for_duration, k_limit, stable_segment_time, time_to_reach
+from psm.pstf import K_MAX_FRACTION, K_ZERO_TOL, k_for_duration, k_limit, time_to_reach
 
 _INF = math.inf
+_TWO_PI = 2.0 * math.pi
+_THREE_HALVES_PI = 1.5 * math.pi
+_sqrt, _log, _atan2 = math.sqrt, math.log, math.atan2
+_cosh, _sinh, _cos, _sin = math.cosh, math.sinh, math.cos, math.sin
 
 #: Segment retiming (option ``segment_retime``) acts on a segment entered with a velocity within
 #: this fraction of the segment's speed scale ``max(|v_j|, |v_n|)`` of its via-point's ...
@@ -304,6 +308,7 @@ class PSMController:
         self._at_rest = [True] * D  # rest retiming acts when a dimension comes to rest
         self._offsets = [list(c.offsets) for c in self._chains]
         self._vels = [list(c.velocities) for c in self._chains]
+        self._axes = [self._axis(d) for d in range(D)]
         # "scale" synchronisation: leads of the last step and the part of each lead a goal change
         # opened (excused, shrinking with the slowest time to completion) [s]
         self._goal_moved = False
@@ -359,6 +364,7 @@ class PSMController:
                 all_done = False
         self._done = all_done
         gain = self._sync_gain
+        a_max = self._a_max
         if gain > 0.0 and D > 1:
             if self._sync_mode == SYNC_BRAKE:
                 # Eq. 14: slow the dimensions ahead of the slowest one.
@@ -374,68 +380,71 @@ class PSMController:
                 # the lead closes from both sides; the reference (the slowest) always runs its
                 # own law, so nothing can wait for ever.
                 tau = self._sync_time
+                # A lead that a goal change opens is not a demonstrated dwell: it is excused and
+                # the excuse shrinks with the slowest dimension's time to completion, so the
+                # dimension catches up by slowing over the rest of the motion instead of holding
+                # still at once (the dimensions still arrive together).
                 lead_prev, excused = self._lead, self._excused
+                goal_moved = self._goal_moved
+                t_big_prev = self._t_big_prev
+                shrink = t_big / t_big_prev if not goal_moved and 0.0 < t_big < t_big_prev else 0.0
                 leads = [0.0] * D
-                for d in range(D):
-                    if braking[d] and t_e[d] < t_big:
-                        leads[d] = t_big - t_e[d]
-                if self._goal_moved:
-                    # A lead that a goal change opens is not a demonstrated dwell: it is excused
-                    # and the excuse shrinks with the slowest dimension's time to completion, so
-                    # the dimension catches up by slowing over the rest of the motion instead of
-                    # holding still at once (the dimensions still arrive together).
-                    for d in range(D):
-                        opened = leads[d] - lead_prev[d]
-                        excused[d] += opened if opened > 0.0 else 0.0
-                    self._goal_moved = False
-                elif 0.0 < t_big < self._t_big_prev:
-                    shrink = t_big / self._t_big_prev
-                    for d in range(D):
-                        excused[d] *= shrink
+                self._goal_moved = False
                 self._t_big_prev = t_big
                 self._lead = leads
                 for d in range(D):
-                    if leads[d] > 0.0:
-                        lead = leads[d] - excused[d]
+                    te_d = t_e[d]
+                    lead_d = t_big - te_d if braking[d] and te_d < t_big else 0.0
+                    leads[d] = lead_d
+                    if goal_moved:
+                        opened = lead_d - lead_prev[d]
+                        excused[d] += opened if opened > 0.0 else 0.0
+                    elif shrink:
+                        excused[d] *= shrink
+                    if modes[d] is not MODE_SEGMENT:
+                        continue
+                    a_d = acc[d]
+                    if lead_d > 0.0:
+                        lead = lead_d - excused[d]
                         s = 1.0 - (lead if lead > 0.0 else 0.0) / tau  # 1 − max(0, lead)/τ
                         if s < 0.0:
                             s = 0.0
-                        a_d = acc[d]
-                        if a_d * vs[d] > 0.0 or vs[d] == 0.0:
+                        v_d = vs[d]
+                        if a_d * v_d > 0.0 or v_d == 0.0:
                             a_d *= s  # speeding up: slowed time scales the push
                         # (a deceleration is never weakened: that would overshoot the via-point)
-                        acc[d] = a_d - (1.0 - s) * vs[d] / tau
+                        a_d = a_d - (1.0 - s) * v_d / tau
+                    # saturation, as below (in this loop: one pass over the dimensions)
+                    limit = a_max[d]
+                    acc[d] = limit if a_d > limit else (-limit if a_d < -limit else a_d)
+                return np.array(acc)
         # The segment law is exact but not gentle: a state pushed right in front of a reversal would
         # have to stop within millimetres. Saturate it; the state then overshoots the via-point and
         # the next segment (or eq. 10) brings it back. Collision stops are never saturated.
-        a_max = self._a_max
         for d in range(D):
-            if modes[d] == MODE_SEGMENT:
-                if acc[d] > a_max[d]:
-                    acc[d] = a_max[d]
-                elif acc[d] < -a_max[d]:
-                    acc[d] = -a_max[d]
+            if modes[d] is MODE_SEGMENT:
+                limit = a_max[d]
+                a_d = acc[d]
+                acc[d] = limit if a_d > limit else (-limit if a_d < -limit else a_d)
         return np.array(acc)
 
     def _dimension(self, d: int, x: float, v: float, v_world: float, dt: float) -> tuple[float, float, str]:
         """Acceleration, time to completion and mode of dimension ``d`` in the state ``x`` [unit],
         ``v`` relative to the goal and ``v_world`` measured [unit/s]."""
-        chain = self._chains[d]
+        k_seg, kappas, durations, hold, n, offsets, vels, dirs, m, a_max, tail = self._axes[d]
         g = self._goal[d]
-        n = self._n[d]
-        a_max = self._a_max[d]
         if self._terminal[d]:
             if 2.0 * abs(v) <= a_max * dt * 5.0 and abs(x - g) <= 100.0 * self._pos_tol:
                 return self._terminal_law(x - g, v, dt, a_max), 0.0, MODE_TERMINAL
             self._terminal[d] = False  # knocked off the goal: the last segment's law takes over
         if self._shift_pending[d]:
             self._shift_pending[d] = False
-            if self._start_shift and not chain.hold:
+            if self._start_shift and not hold:
                 self._shift_start(d, x - g)
-        offsets, dirs, m = self._offsets[d], self._dir[d], self._m[d]
-        vels = self._vels[d]
+                offsets, vels = self._offsets[d], self._vels[d]
         pos_tol = self._pos_tol
-        j = self._segment[d]
+        vel_tol = self._vel_tol
+        j = j_prev = self._segment[d]
         while True:
             x_n = g + offsets[j + 1]
             v_n = vels[j + 1]
@@ -444,7 +453,7 @@ class PSMController:
             if not last and delta * dirs[j] <= 0.0:
                 j += 1  # progress: this via-point is already behind the state
                 continue
-            if abs(delta) <= pos_tol and abs(v) <= self._vel_tol:
+            if -pos_tol <= delta <= pos_tol and -vel_tol <= v <= vel_tol:
                 if last:
                     break
                 # At rest on a via-point: it is reached. (A state still moving within pos_tol of
@@ -461,46 +470,48 @@ class PSMController:
                 return -math.copysign(min(m, abs(v) / dt), v), abs(v) / m, MODE_WRONG_WAY
             direction = 1.0 if delta > 0.0 else -1.0
             v_along = v * direction
-            if not last and v_n != 0.0 and v_along >= 0.0 and abs(v_n * v_n - v * v) > 4.0 * m * abs(delta):
+            dist = delta * direction  # |Δ| (Δ ≠ 0 here)
+            if not last and v_n != 0.0 and v_along >= 0.0 and abs(v_n * v_n - v * v) > 4.0 * m * dist:
                 # Matching this via-point's velocity would take more than 2 m (a push along the
                 # motion right before it, say): pass it and aim at the next one instead.
                 j += 1
                 continue
             wrong_way = v_along < 0.0 and -v_along > m * dt
             v_eff = v if v_along >= 0.0 else 0.0  # a wrong-way speed below one tick of m is rest
-            k_learned = chain.k[j]
-            if j != self._segment[d]:
+            k_learned = k_seg[j]
+            if j != j_prev:
                 self._k_cap[d] = math.inf
-                if self._segment_retime and not chain.hold and not wrong_way:
+                if self._segment_retime and not hold and not wrong_way:
                     self._retime_entry(d, j, x, v, v_eff, x_n, v_n, delta, dt)
             if self._retime_pending[d]:
                 # First step of the motion: the start may lie anywhere (another start point than
                 # the demonstration's). Re-solve this segment's k once so that it takes its
                 # nominal duration from here, as the demonstration's did from its via-point.
                 self._retime_pending[d] = False
-                if self._start_retime and not chain.hold and not wrong_way:
-                    k_hi = k_limit(v_eff, v_n, delta, chain.kappa[j])
-                    if k_hi > -math.inf and chain.durations[j] > 0.0:
-                        k_new = k_for_duration(x, v_eff, x_n, v_n, chain.durations[j], k_hi)
+                if self._start_retime and not hold and not wrong_way:
+                    k_hi = k_limit(v_eff, v_n, delta, kappas[j])
+                    if k_hi > -math.inf and durations[j] > 0.0:
+                        k_new = k_for_duration(x, v_eff, x_n, v_n, durations[j], k_hi)
                         if math.isfinite(k_new):
                             self._k_start[d] = (j, k_new)
             elif self._rest_retime:
-                at_rest = abs(v) <= self._vel_tol
-                if at_rest and not self._at_rest[d] and not chain.hold and chain.durations[j] > 0.0:
+                at_rest = -vel_tol <= v <= vel_tol
+                if at_rest and not self._at_rest[d] and not hold and durations[j] > 0.0:
                     # Brought to rest inside a segment (held, or pushed to a stop): from rest a
                     # segment towards a via-point at rest would crawl on the margin κ alone.
                     # Re-solve its slope so that it takes the nominal time left from here: the
                     # segment's nominal duration times the fraction of its length still ahead.
                     span = abs(offsets[j + 1] - offsets[j])
                     left = min(1.0, abs(delta) / span) if span > 0.0 else 1.0
-                    k_hi = k_limit(0.0, v_n, delta, chain.kappa[j])
+                    k_hi = k_limit(0.0, v_n, delta, kappas[j])
                     if k_hi > -math.inf:
-                        t_left = max(left * chain.durations[j], 2.0 * dt)
+                        t_left = max(left * durations[j], 2.0 * dt)
                         k_new = k_for_duration(x, 0.0, x_n, v_n, t_left, k_hi)
                         if math.isfinite(k_new):
                             self._k_start[d] = (j, k_new)
                             self._k_cap[d] = math.inf
-                self._at_rest[d] = at_rest
+                if at_rest is not self._at_rest[d]:
+                    self._at_rest[d] = at_rest
             ks = self._k_start[d]
             if ks is not None:
                 if ks[0] == j:
@@ -511,12 +522,13 @@ class PSMController:
             # within a segment: re-solving from each new state would otherwise ride the bound
             # and creep (the bound rises as the segment progresses).
             # (This is the hot path: k_limit and the min/max are written out with the same
-            # operations in the same order, so the results are the same; Δ ≠ 0.)
-            speed_sum = abs(v_eff) + abs(v_n)
+            # operations in the same order, so the results are the same; Δ ≠ 0, v_eff = v when
+            # it points along Δ, else 0.)
+            speed_sum = (v_along if v_along >= 0.0 else 0.0) + (v_n if v_n >= 0.0 else -v_n)  # |v_eff|+|v_n|
             speed_ratio = speed_sum / delta
             k_max = speed_ratio * speed_ratio
             k_bound = K_MAX_FRACTION * k_max  # ρ k_max: the bound without the speed margin κ
-            k_stable = k_bound - chain.kappa[j]
+            k_stable = k_bound - kappas[j]
             k_cap = self._k_cap[d]
             k_eff = k_learned  # min(k_learned, k_stable, k_cap)
             if k_stable < k_eff:
@@ -536,7 +548,7 @@ class PSMController:
             # constant c₀, i.e. braking as hard as allowed, instead of a law that accelerates
             # now and would need more than the limit to stop later.
             c0 = (v_n * v_n - v_eff * v_eff) / (2.0 * delta)  # the law's mid-point acceleration
-            k_room = 2.0 * (a_max - abs(c0)) / abs(delta)
+            k_room = 2.0 * (a_max - (c0 if c0 >= 0.0 else -c0)) / dist
             if k_room > 0.0:  # min(max(k_eff, −k_room), k_room, k_bound)
                 if -k_room > k_eff:
                     k_eff = -k_room
@@ -546,6 +558,7 @@ class PSMController:
                     k_eff = k_bound
             else:  # min(0, k_bound)
                 k_eff = k_bound if k_bound < 0.0 else 0.0
+            a_c = c0 - 0.5 * k_eff * delta  # the law's acceleration at the state
             if wrong_way:
                 t_stop = -v_along / m
                 x_stop = x + 0.5 * v * t_stop
@@ -554,7 +567,29 @@ class PSMController:
                 # Stable by construction (v_eff along Δ, k_eff ≤ ρ k_max) unless k_max = 0 (rest
                 # to rest: k_eff may sit on the bound) or v_n points against Δ (the checked
                 # closed form below decides those: it returns inf for an unstable segment).
-                t_seg = stable_segment_time(delta, c0, v_eff, v_n, k_eff)
+                # psm.pstf.stable_segment_time written out, the same operations in the same
+                # order (so the same t_seg, bit for bit: tests/core/test_model.py checks it),
+                # reusing |Δ|, |v_eff| + |v_n| and a_c from above: ~5 % of a step at D = 7.
+                t0 = 2.0 * dist / speed_sum if speed_sum > 0.0 else _INF
+                k_abs = k_eff if k_eff >= 0.0 else -k_eff
+                if k_eff == 0.0 or (t0 != _INF and k_abs * t0 * t0 < K_ZERO_TOL):
+                    t_seg = t0  # k ≈ 0: t = 2Δ/(v_c + v_n)
+                else:
+                    a_n = c0 + 0.5 * k_eff * delta
+                    if k_eff > 0.0:
+                        w = _sqrt(k_eff)
+                        p_c, q_c = a_c / w + v_eff, a_c / w - v_eff
+                        ratio = (a_n / w + v_n) / p_c if abs(p_c) >= abs(q_c) else q_c / (a_n / w - v_n)
+                        if not ratio > 0.0:
+                            t_seg = _INF
+                        else:
+                            t_seg = _log(ratio) / w
+                            if 0.0 > t_seg:
+                                t_seg = 0.0
+                    else:
+                        w = _sqrt(-k_eff)
+                        dtheta = (_atan2(-v_n * w, -a_n) - _atan2(-v_eff * w, -a_c)) % _TWO_PI
+                        t_seg = 0.0 if dtheta > _THREE_HALVES_PI else dtheta / w
             else:
                 t_seg = time_to_reach(x, v_eff, x_n, v_n, k_eff)
             if t_seg <= dt and not wrong_way:
@@ -563,15 +598,18 @@ class PSMController:
                 j += 1  # the via-point is reached within this tick
                 continue
             break
-        self._segment[d] = j
+        if j != j_prev:
+            self._segment[d] = j
         self._returning[d] = last and delta * dirs[j] < 0.0
         # Capture only a state the holding spring can absorb within the acceleration limit (one
         # that arrives too fast overshoots, and the last segment's law brings it back).
-        slow_enough = 2.0 * abs(v) <= a_max * dt * 5.0
-        if last and ((abs(delta) <= pos_tol and abs(v) <= self._vel_tol) or (t_seg <= dt and slow_enough)):
+        if last and (
+            (-pos_tol <= delta <= pos_tol and -vel_tol <= v <= vel_tol)
+            or (t_seg <= dt and 2.0 * abs(v) <= a_max * dt * 5.0)
+        ):
             self._terminal[d] = True
             return self._terminal_law(x - g, v, dt, a_max), 0.0, MODE_TERMINAL
-        te = t_seg + self._tail[d][j]
+        te = t_seg + tail[j]
         stop = self._stops[d]
         if stop is not None:
             gap = stop - x
@@ -611,21 +649,30 @@ class PSMController:
         # Eq. 7 with the corrected eq. 5, solved from the measured state. The command is the
         # constant acceleration that gives the PSTF's exact velocity one tick later:
         # v(dt) = v C + a_c dt S with z = k dt² (see psm.pstf.propagate).
-        a_c = c0 - 0.5 * k_eff * delta
         z = k_eff * dt * dt
-        if abs(z) < 1e-5:
+        if -1e-5 < z < 1e-5:
             c_m1 = z * (0.5 + z / 24.0)
             s_ = 1.0 + z / 6.0
         elif z > 0.0:
-            r = math.sqrt(z)
-            c_m1 = math.cosh(r) - 1.0
-            s_ = math.sinh(r) / r
+            r = _sqrt(z)
+            c_m1 = _cosh(r) - 1.0
+            s_ = _sinh(r) / r
         else:
-            r = math.sqrt(-z)
-            c_m1 = math.cos(r) - 1.0
-            s_ = math.sin(r) / r
+            r = _sqrt(-z)
+            c_m1 = _cos(r) - 1.0
+            s_ = _sin(r) / r
         a = (v_eff * c_m1 + a_c * dt * s_) / dt + (v_eff - v) / dt
         return a, te, MODE_SEGMENT
+
+    def _axis(self, d: int) -> tuple:
+        """What :meth:`_dimension` reads of dimension ``d`` at every step, in one tuple (one
+        unpacking instead of a dozen attribute and index look-ups on the hot path): the chain's
+        ``k``, ``κ``, durations, hold flag and segment count, the via-point offsets and velocities
+        in use, the segments' directions, the wrong-way acceleration ``m``, the acceleration limit
+        and the time after each segment."""
+        c = self._chains[d]
+        return (c.k, c.kappa, c.durations, c.hold, self._n[d], self._offsets[d], self._vels[d],
+                self._dir[d], self._m[d], self._a_max[d], self._tail[d])
 
     def _retime_entry(
         self, d: int, j: int, x: float, v: float, v_eff: float, x_n: float, v_n: float, delta: float,
@@ -694,6 +741,7 @@ class PSMController:
                 shifted = vel[i] + dv
                 vel[i] = shifted if shifted * dirs[i - 1] > 0.0 and shifted * dirs[i] > 0.0 else 0.0
         self._vels[d] = vel
+        self._axes[d] = self._axis(d)
 
     def _terminal_law(self, error: float, v: float, dt: float, a_max: float) -> float:
         """Critically damped hold of the goal, ``−ω² e − 2ω v`` (``ω`` = terminal_omega or

@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from trajectories import minimum_jerk
 
 from psm import ModelFileError, ParameterError, PhaseSpaceModel, ShapeError
@@ -309,6 +311,42 @@ def test_time_to_go_is_the_closed_form_time_of_the_segment(k: float, v_n: float)
     # k_max = ((|v| + |v_n|)/Δ)²: every k above stays below 0.97 k_max - κ, so it is used as is.
     assert ctrl.time_to_go_tuple[0] == time_to_reach(x, v, 0.8, v_n, k) + 1.0
 
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    x_frac=st.floats(0.0, 0.99),
+    v=st.floats(0.0, 3.0),
+    v_n=st.floats(0.0, 2.0),
+    k_frac=st.floats(-3.0, 0.999),
+    sign=st.sampled_from([1.0, -1.0]),
+)
+def test_time_to_go_matches_the_closed_form_for_any_state(
+    x_frac: float, v: float, v_n: float, k_frac: float, sign: float
+) -> None:
+    """The same for any state inside a segment, either direction, any slope below the stability
+    bound: the hot path's written-out closed form gives psm.pstf.time_to_reach bit for bit."""
+    from psm.controller import DimensionChain, PSMController
+    from psm.pstf import K_MAX_FRACTION, time_to_reach
+
+    kappa = 1e-3
+    x_n = 1.0 - 0.2 * sign  # the via-point, 0.2 before the goal at 1.0
+    x = x_n - sign * 0.2 * (1.0 - x_frac)  # between the first via-point and x_n
+    if x == x_n:
+        return
+    speed_ratio = (v + v_n) / (x_n - x)
+    k_top = K_MAX_FRACTION * (speed_ratio * speed_ratio) - kappa  # the controller's clamp of k
+    k = k_frac * max(abs(k_top), 1.0)
+    chain = DimensionChain(
+        offsets=(-0.4 * sign, -0.2 * sign, 0.0), velocities=(0.0, v_n * sign, 0.0), k=(k, -1.0),
+        kappa=(kappa, kappa), durations=(1.0, 1.0), hold=False,
+    )
+    ctrl = PSMController([chain], [1.0], np.array([50.0]), 0.0, 1e-6, 1e-6)
+    ctrl.step([x], [v * sign], DT)
+    expected = time_to_reach(x, v * sign, x_n, v_n * sign, min(k, k_top))
+    if ctrl.segment_tuple != (0,) or not expected > DT:
+        return  # reached within the tick: the next segment's time is reported
+    assert ctrl.time_to_go_tuple[0] == expected + 1.0
 
 def test_one_dimensional_demonstration() -> None:
     t = np.linspace(0, 1, 501)
