@@ -21,7 +21,6 @@ velocity. 425 cases, ~10 s. The reference file is the caller's (it is not commit
 from __future__ import annotations
 
 import hashlib
-import json
 import sys
 from collections.abc import Iterator
 from pathlib import Path
@@ -31,6 +30,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(ROOT)]
+
+from fingerprints import save_or_compare  # noqa: E402
 
 from benchmarks.learner import list_shapes, load_shape, min_jerk_reach  # noqa: E402
 from experiments.scale import slice_demo, via_point_reach  # noqa: E402
@@ -97,7 +98,7 @@ def models() -> Iterator[tuple[str, PhaseSpaceModel, np.ndarray, float, int]]:
 
 
 def fingerprints() -> dict[str, str]:
-    """Every case's digest, by ``model/options/perturbation``."""
+    """Every case's digest, by ``model/options/perturbation`` (printing how many cases there are)."""
     rng = np.random.default_rng(7)
     out = {}
     for name, model, x0, dt, samples in models():
@@ -107,23 +108,12 @@ def fingerprints() -> dict[str, str]:
                 out[f"{name}/{opt_name}/{perturbation}"] = closed_loop(
                     model, x0 + offset, dt, min(2 * samples, 3000), rng, options, perturbation
                 )
+    print(f"{len(out)} cases")
     return out
 
 
 def main() -> int:
-    if len(sys.argv) != 3 or sys.argv[1] not in ("save", "compare"):
-        print(__doc__)
-        return 2
-    mode, ref = sys.argv[1], Path(sys.argv[2])
-    got = fingerprints()
-    print(f"{len(got)} cases")
-    if mode == "save":
-        ref.write_text(json.dumps(got, indent=0) + "\n")
-        return 0
-    want = json.loads(ref.read_text())
-    differ = [name for name in want if got.get(name) != want[name]]
-    print(f"{len(differ)} differ" + (": " + ", ".join(differ[:20]) if differ else ""))
-    return 1 if differ or set(got) != set(want) else 0
+    return save_or_compare(sys.argv[1:], __doc__ or "", fingerprints)
 
 
 if __name__ == "__main__":
