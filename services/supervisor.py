@@ -825,6 +825,14 @@ def _num(value: Any, fmt: str) -> str:
     return "-" if value is None else format(value, fmt)
 
 
+def _small(value: Any) -> str:
+    """A figure that is usually far below 1 (an orientation error in degrees): two significant
+    digits below 10 (0.0044, not 0.00), one decimal above."""
+    if value is None:
+        return "-"
+    return format(value, ".1f") if abs(value) >= 10.0 else format(value, ".2g")
+
+
 def task_table(task: dict[str, Any]) -> Any:
     """The per-step table of a task summary (``TaskRunner.summary``) as a ``rich`` Table."""
     from rich.table import Table
@@ -843,7 +851,7 @@ def task_table(task: dict[str, Any]) -> Any:
             s.get("step", ""), s.get("outcome", ""), _num(s.get("duration_s"), ".2f"),
             _num(None if pe is None else 1e3 * pe, ".1f"), _num(None if ve is None else 1e3 * ve, ".1f"),
             _num(s.get("peak_speed_mps"), ".3f"), _num(s.get("peak_speed_ratio"), ".2f"),
-            _num(s.get("peak_accel_mps2"), ".2f"), _num(s.get("max_orientation_error_deg"), ".2f"),
+            _num(s.get("peak_accel_mps2"), ".2f"), _small(s.get("max_orientation_error_deg")),
         )
     lat = (task.get("planner") or {}).get("latency_us")
     if lat:

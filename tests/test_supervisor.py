@@ -306,8 +306,8 @@ def test_the_task_summary_is_never_cut_short_on_a_narrow_output() -> None:
     steps = [
         {"step": name, "outcome": "reached", "duration_s": 2.875, "position_error_m": 0.0038,
          "velocity_error_mps": 0.0296, "peak_speed_mps": 0.2764, "peak_speed_ratio": 0.99,
-         "peak_accel_mps2": 2.34, "max_orientation_error_deg": 0.0}
-        for name in ("grasp_spoon", "back_to_neutral", "reach_person")
+         "peak_accel_mps2": 2.34, "max_orientation_error_deg": error}
+        for name, error in (("grasp_spoon", 0.00436), ("back_to_neutral", 0.0), ("reach_person", 12.34))
     ]
     task = {"task": "feeding", "state": "done", "detail": "", "success": True, "steps_succeeded": 3,
             "steps_total": 3, "duration_s": 17.03, "steps": steps,
@@ -317,7 +317,7 @@ def test_the_task_summary_is_never_cut_short_on_a_narrow_output() -> None:
     summary_console(out, [table]).print(table)
     text = out.getvalue()
     for cell in ("back_to_neutral", "grasp_spoon", "reach_person", "2.88", "3.8", "29.6", "0.276",
-                 "vel err mm/s", "orient err °", "p99 615 µs"):
+                 "vel err mm/s", "orient err °", "p99 615 µs", "0.0044", "12.3"):
         assert cell in text, text
     assert "…" not in text, text
 
