@@ -217,11 +217,12 @@ def time_to_reach(x_c: float, v_c: float, x_n: float, v_n: float, k: float) -> f
 
 
 def stable_segment_time(delta: float, c0: float, v_c: float, v_n: float, k: float) -> float:
-    """:func:`time_to_reach` [s] of a segment already known to be stable, without the checks (the
-    controller's hot path, once per dimension and tick): ``delta = x_n − x_c ≠ 0``, both
-    velocities along it or zero, ``k < k_max``; ``c0 = (v_n² − v_c²)/(2Δ)`` [unit/s²] its
-    mid-point acceleration. (:func:`k_for_duration`'s root-finder writes the same closed form
-    out in its closure.)"""
+    """:func:`time_to_reach` [s] of a segment already known to be stable, without the checks:
+    ``delta = x_n − x_c ≠ 0``, both velocities along it or zero, ``k < k_max``;
+    ``c0 = (v_n² − v_c²)/(2Δ)`` [unit/s²] its mid-point acceleration. The reference for the two
+    places that write the same closed form out for speed: :func:`k_for_duration`'s root-finder
+    (in its closure) and the controller's hot path (:meth:`psm.PSMController.step`, reusing what
+    its law computes; ``tests/core/test_model.py`` checks it against :func:`time_to_reach`)."""
     speed_sum = abs(v_c) + abs(v_n)
     t0 = 2.0 * abs(delta) / speed_sum if speed_sum > 0.0 else _INF
     if k == 0.0 or (t0 != _INF and abs(k) * t0 * t0 < K_ZERO_TOL):

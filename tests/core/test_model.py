@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from trajectories import minimum_jerk
 
@@ -332,8 +332,7 @@ def test_time_to_go_matches_the_closed_form_for_any_state(
     kappa = 1e-3
     x_n = 1.0 - 0.2 * sign  # the via-point, 0.2 before the goal at 1.0
     x = x_n - sign * 0.2 * (1.0 - x_frac)  # between the first via-point and x_n
-    if x == x_n:
-        return
+    assume(x != x_n)
     speed_ratio = (v + v_n) / (x_n - x)
     k_top = K_MAX_FRACTION * (speed_ratio * speed_ratio) - kappa  # the controller's clamp of k
     k = k_frac * max(abs(k_top), 1.0)
@@ -344,8 +343,7 @@ def test_time_to_go_matches_the_closed_form_for_any_state(
     ctrl = PSMController([chain], [1.0], np.array([50.0]), 0.0, 1e-6, 1e-6)
     ctrl.step([x], [v * sign], DT)
     expected = time_to_reach(x, v * sign, x_n, v_n * sign, min(k, k_top))
-    if ctrl.segment_tuple != (0,) or not expected > DT:
-        return  # reached within the tick: the next segment's time is reported
+    assume(ctrl.segment_tuple == (0,) and expected > DT)  # else the next segment's time is reported
     assert ctrl.time_to_go_tuple[0] == expected + 1.0
 
 def test_one_dimensional_demonstration() -> None:
